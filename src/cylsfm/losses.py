@@ -1,0 +1,360 @@
+"""View-synthesis losses, all wrap-aware at the left/right seam of a full panorama.
+
+The paper's objective (eq. 1) over scales ``s`` and sources::
+
+    L = sum_s ( sum_src L_pixel + lambda_s L_smooth + sum_src lambda_e L_exp )
+
+* ``L_pixel`` (eq. 3): L1 photometric error between the target and the source warped into it, weighted by
+  the explainability mask ``E`` (and by an optional static mask of pixels to use), averaged over valid pixels;
+* ``L_smooth`` (eq. 4): ``|d2D/dx2| + |d2D/dxdy| + |d2D/dydx| + |d2D/dy2|`` of the disparity, weighted by
+  ``1 / 2^s`` at scale ``s`` as in SfMLearner's implementation; or the image-aware smoothness used on
+  Headcam (weight ``lambda_m``);
+* ``L_exp``: cross-entropy of ``E`` towards "explainable" (1).
+
+Improved variants (selectable in :class:`LossConfig`): SSIM + L1 photometric error, per-pixel minimum
+reprojection over sources, auto-masking of pixels that look static, and computing the photometric term on
+disparities upsampled to full resolution (the monodepth2 recipe).
+
+Image tensors are ``[B,3,H,W]`` in ``[0, 1]``; disparities ``[B,1,H,W]`` (1 / depth); explainability masks
+``[B,S,H,W]`` in ``(0, 1)``; poses ``[B,S,4,4]`` (target-to-source transforms).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .geometry import Camera, inverse_warp
+
+__all__ = [
+    "LossConfig",
+    "LossOutput",
+    "explainability_loss",
+    "gradient_x",
+    "gradient_y",
+    "image_aware_smoothness",
+    "image_pyramid",
+    "photometric_error",
+    "second_order_smoothness",
+    "second_order_terms",
+    "ssim_error",
+    "upsample_like",
+    "view_synthesis_loss",
+]
+
+
+# ----------------------------------------------------------------------------- finite differences
+def gradient_x(t: Tensor, wrap: bool) -> Tensor:
+    """Forward difference along the width: ``t[..., j+1] - t[..., j]``.
+
+    ``[..., H, W] -> [..., H, W]`` with ``wrap`` (the last column differences across the seam with column
+    0), ``[..., H, W-1]`` without. Both agree on their common columns ``0 .. W-2``.
+    """
+    if wrap:
+        return torch.roll(t, -1, dims=-1) - t
+    return t[..., 1:] - t[..., :-1]
+
+
+def gradient_y(t: Tensor) -> Tensor:
+    """Forward difference along the height (never wraps): ``[..., H, W] -> [..., H-1, W]``."""
+    return t[..., 1:, :] - t[..., :-1, :]
+
+
+def second_order_terms(disp: Tensor, wrap: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The four second derivatives of eq. 4: ``(d2/dx2, d2/dxdy, d2/dydx, d2/dy2)`` of ``disp [B,1,H,W]``.
+
+    Column ``j`` of ``d2/dx2`` is ``D[j+2] - 2 D[j+1] + D[j]``; with ``wrap`` there are ``W`` columns (the
+    last two cross the seam), without ``W - 2``, equal to the first ``W - 2`` of the wrapped ones.
+    """
+    dx = gradient_x(disp, wrap)
+    dy = gradient_y(disp)
+    return gradient_x(dx, wrap), gradient_y(dx), gradient_x(dy, wrap), gradient_y(dy)
+
+
+def second_order_smoothness(disp: Tensor, wrap: bool) -> Tensor:
+    """Eq. 4 averaged over pixels: mean ``|dxx| + |dxy| + |dyx| + |dyy|`` of ``disp [B,1,H,W]`` -> scalar."""
+    return sum(t.abs().mean() for t in second_order_terms(disp, wrap))  # type: ignore[return-value]
+
+
+def image_aware_smoothness(
+    disp: Tensor, image: Tensor, wrap: bool, order: int = 1, mean_normalize: bool = False
+) -> Tensor:
+    """Disparity smoothness that is relaxed at image edges -> scalar.
+
+    ``order=1``: ``|dD/dx| exp(-|dI/dx|) + |dD/dy| exp(-|dI/dy|)`` (first order, as used on Headcam).
+    ``order=2``: ``exp(-|lap I|) (|d2D/dx2| + |d2D/dxdy| + |d2D/dy2|)`` with the image Laplacian, the form
+    written in the paper after Wang et al. Image derivatives are averaged over colour channels.
+
+    Args:
+        disp: ``[B,1,H,W]`` disparity.
+        image: ``[B,3,H,W]`` image of the same size.
+        wrap: differences across the seam.
+        mean_normalize: divide the disparity by its per-image mean first (scale invariance).
+    """
+    if mean_normalize:
+        disp = disp / disp.mean(dim=(2, 3), keepdim=True).clamp(min=1e-7)
+    if order == 1:
+        wx = torch.exp(-gradient_x(image, wrap).abs().mean(1, keepdim=True))
+        wy = torch.exp(-gradient_y(image).abs().mean(1, keepdim=True))
+        return (gradient_x(disp, wrap).abs() * wx).mean() + (gradient_y(disp).abs() * wy).mean()
+    if order == 2:
+        dxx, dxy, _, dyy = second_order_terms(disp, wrap)
+        ixx, _, _, iyy = second_order_terms(image, wrap)
+        # align every term on the rows/columns they all have: rows 0..H-3, columns 0..W-3 (or all with wrap)
+        h, w = dyy.shape[-2], dxx.shape[-1]
+        lap = (ixx[..., :h, :w] + iyy[..., :h, :w]).abs().mean(1, keepdim=True)
+        weight = torch.exp(-lap)
+        d = dxx[..., :h, :w].abs() + dxy[..., :h, :w].abs() + dyy[..., :h, :w].abs()
+        return (weight * d).mean()
+    raise ValueError(f"image-aware smoothness order must be 1 or 2, got {order}")
+
+
+# ----------------------------------------------------------------------------- photometric errors
+def _pad_for_window(x: Tensor, wrap: bool) -> Tensor:
+    """Pad one pixel on every side for a 3x3 window: circular horizontally with wrap, reflect otherwise."""
+    if wrap:
+        x = torch.cat((x[..., -1:], x, x[..., :1]), -1)
+        return F.pad(x, (0, 0, 1, 1), mode="reflect")
+    return F.pad(x, (1, 1, 1, 1), mode="reflect")
+
+
+def ssim_error(x: Tensor, y: Tensor, wrap: bool) -> Tensor:
+    """Structural dissimilarity ``(1 - SSIM) / 2`` over 3x3 windows, ``[B,C,H,W] -> [B,1,H,W]`` in [0, 1].
+
+    Windows wrap around the seam when ``wrap``; the top and bottom rows use reflection.
+    """
+    c1, c2 = 0.01**2, 0.03**2
+    xp, yp = _pad_for_window(x, wrap), _pad_for_window(y, wrap)
+    stacked = torch.cat((xp, yp, xp * xp, yp * yp, xp * yp), 1)
+    pooled = F.avg_pool2d(stacked, 3, 1)
+    mx, my, mxx, myy, mxy = pooled.chunk(5, 1)
+    sx, sy, sxy = mxx - mx * mx, myy - my * my, mxy - mx * my
+    ssim = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sx + sy + c2))
+    return ((1 - ssim) / 2).clamp(0, 1).mean(1, keepdim=True)
+
+
+def photometric_error(target: Tensor, warped: Tensor, ssim_weight: float = 0.0, wrap: bool = False) -> Tensor:
+    """Per-pixel photometric error ``[B,1,H,W]``: L1 over channels, optionally mixed with SSIM.
+
+    ``ssim_weight * ssim_error + (1 - ssim_weight) * L1``; ``ssim_weight = 0`` is the paper's L1 (eq. 3).
+    """
+    l1 = (target - warped).abs().mean(1, keepdim=True)
+    if ssim_weight <= 0:
+        return l1
+    return ssim_weight * ssim_error(target, warped, wrap) + (1 - ssim_weight) * l1
+
+
+def explainability_loss(mask: Tensor) -> Tensor:
+    """Cross-entropy of explainability masks ``[B,S,H,W]`` (probabilities) towards 1 -> scalar."""
+    return F.binary_cross_entropy(mask, torch.ones_like(mask))
+
+
+# ----------------------------------------------------------------------------- pyramids
+def upsample_like(x: Tensor, size: tuple[int, int], wrap: bool) -> Tensor:
+    """Bilinear resize of ``x [B,C,h,w]`` to ``size = (H, W)`` with ``align_corners=False``.
+
+    With ``wrap`` the interpolation blends across the seam: one column of circular padding on each side
+    is resized along with the image and then cropped away (exact for integer scale factors).
+    """
+    h_out, w_out = size
+    if x.shape[-2:] == (h_out, w_out):
+        return x
+    if not wrap:
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+    w = x.shape[-1]
+    padded = torch.cat((x[..., -1:], x, x[..., :1]), -1)
+    scale = w_out / w
+    big = F.interpolate(padded, size=(h_out, round((w + 2) * scale)), mode="bilinear", align_corners=False)
+    pad = round(scale)
+    return big[..., pad : pad + w_out]
+
+
+def image_pyramid(image: Tensor, sizes: list[tuple[int, int]]) -> list[Tensor]:
+    """Area-downsampled copies of ``image [..., C, H, W]`` at ``sizes`` = ``[(H_s, W_s), ...]``.
+
+    Leading dimensions are flattened for the resampling and restored; the full size returns ``image``.
+    """
+    lead = image.shape[:-3]
+    flat = image.reshape(-1, *image.shape[-3:])
+    out = []
+    for h, w in sizes:
+        if (h, w) == tuple(image.shape[-2:]):
+            out.append(image)
+        else:
+            out.append(F.interpolate(flat, size=(h, w), mode="area").reshape(*lead, image.shape[-3], h, w))
+    return out
+
+
+# ----------------------------------------------------------------------------- the total
+@dataclass
+class LossConfig:
+    """Weights and switches of the multi-scale view-synthesis loss (defaults: the paper on SYNTHIA).
+
+    Attributes:
+        smooth_weight: ``lambda_s`` of the second-order smoothness (eq. 4).
+        image_smooth_weight: ``lambda_m`` of the image-aware smoothness (0.2 on Headcam).
+        image_smooth_order: 1 (first-order, edge-aware) or 2 (Laplacian-weighted second order).
+        smooth_mean_normalize: divide disparities by their mean before the image-aware smoothness.
+        explain_weight: ``lambda_e`` of the explainability regulariser (0 disables masks).
+        smooth_scale_decay: divide smoothness weights by ``2^s`` at scale ``s`` (SfMLearner).
+        ssim_weight: weight of SSIM in the photometric error (0 = the paper's L1; 0.85 = monodepth2).
+        min_reprojection: per pixel, the minimum photometric error over sources instead of the sum.
+        automask: ignore pixels whose error without warping is lower than with warping (static scene
+            parts, objects moving with the camera).
+        full_resolution: upsample every scale's disparity to the input size for the photometric term.
+    """
+
+    smooth_weight: float = 2.0
+    image_smooth_weight: float = 0.0
+    image_smooth_order: int = 1
+    smooth_mean_normalize: bool = False
+    explain_weight: float = 0.0
+    smooth_scale_decay: bool = True
+    ssim_weight: float = 0.0
+    min_reprojection: bool = False
+    automask: bool = False
+    full_resolution: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("smooth_weight", "image_smooth_weight", "explain_weight"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.ssim_weight <= 1:
+            raise ValueError(f"ssim_weight must be in [0, 1], got {self.ssim_weight}")
+        if self.image_smooth_order not in (1, 2):
+            raise ValueError(f"image_smooth_order must be 1 or 2, got {self.image_smooth_order}")
+
+
+@dataclass
+class LossOutput:
+    """The total loss and every term (scalars summed over scales), plus finest-scale maps for logging.
+
+    ``warped`` ``[B,S,3,H,W]`` and ``error`` ``[B,1,H,W]`` (the photometric error used, per pixel) are
+    detached.
+    """
+
+    total: Tensor
+    terms: dict[str, Tensor] = field(default_factory=dict)
+    warped: Tensor | None = None
+    error: Tensor | None = None
+
+
+def _masked_mean(x: Tensor, weight: Tensor) -> Tensor:
+    return (x * weight).sum() / weight.sum().clamp(min=1.0)
+
+
+def view_synthesis_loss(
+    target: Tensor,
+    sources: Tensor,
+    disparities: list[Tensor],
+    poses: Tensor,
+    camera: Camera,
+    config: LossConfig | None = None,
+    explainability: list[Tensor] | None = None,
+    static_mask: Tensor | None = None,
+    wrap: bool | None = None,
+    target_pyramid: list[Tensor] | None = None,
+    source_pyramid: list[Tensor] | None = None,
+) -> LossOutput:
+    """The multi-scale objective of eq. 1 (and its improved variants, per ``config``).
+
+    Args:
+        target: ``[B,3,H,W]`` target images in [0, 1].
+        sources: ``[B,S,3,H,W]`` source images.
+        disparities: per scale, finest first, ``[B,1,H_s,W_s]`` target disparities (1 / depth).
+        poses: ``[B,S,4,4]`` transforms from the target camera to each source camera, in the depth's unit.
+        camera: camera of the full-resolution images (``W x H``); smaller scales use ``camera.resized``.
+        config: weights and variants (default: the paper's SYNTHIA setting).
+        explainability: per scale ``[B,S,H_s,W_s]`` masks in (0, 1), or ``None`` (all ones).
+        static_mask: ``[B,1,H,W]`` or ``[1,1,H,W]`` weights in [0, 1] of pixels to use (e.g. 0 on a helmet).
+        wrap: wrap at the seam; ``None``: if the camera wraps.
+        target_pyramid, source_pyramid: precomputed :func:`image_pyramid` of ``target`` at the
+            disparities' sizes and of ``sources`` at the sizes of the photometric term (the disparities'
+            sizes, or all the full size with ``full_resolution``); computed here when omitted.
+
+    Returns:
+        :class:`LossOutput` with terms ``photometric``, ``smooth``, ``explain`` and ``total``.
+    """
+    cfg = config or LossConfig()
+    if wrap is None:
+        wrap = camera.wraps
+    b, n_src = sources.shape[:2]
+    if poses.shape != (b, n_src, 4, 4):
+        raise ValueError(f"poses must be [B,S,4,4] = [{b},{n_src},4,4], got {tuple(poses.shape)}")
+    if cfg.min_reprojection and explainability is not None and cfg.explain_weight > 0:
+        raise ValueError("explainability masks and minimum reprojection are alternatives: use one")
+    full_size = tuple(target.shape[-2:])
+    sizes = [tuple(d.shape[-2:]) for d in disparities]
+    photo_sizes = [full_size] * len(sizes) if cfg.full_resolution else sizes
+    if target_pyramid is None:
+        target_pyramid = image_pyramid(target, sizes)
+    if source_pyramid is None:
+        source_pyramid = image_pyramid(sources, photo_sizes)
+    photo_targets = [target] * len(sizes) if cfg.full_resolution else target_pyramid
+    cams: dict[tuple[int, int], Camera] = {}
+    zero = target.new_zeros(())
+    photometric, smooth, explain = zero, zero, zero
+    warped_log, error_log = None, None
+    for s, disp in enumerate(disparities):
+        h, w = photo_sizes[s]
+        if (h, w) not in cams:
+            cams[(h, w)] = camera.resized(w, h) if (w, h) != camera.size else camera
+        cam = cams[(h, w)]
+        disp_p = upsample_like(disp, (h, w), wrap) if cfg.full_resolution else disp
+        depth = 1.0 / disp_p.clamp(min=1e-6)
+        tgt = photo_targets[s]
+        src = source_pyramid[s]
+        weight = torch.ones_like(depth)
+        if static_mask is not None:
+            weight = weight * image_pyramid(static_mask.to(depth.dtype), [(h, w)])[0]
+        errors, valids, warps = [], [], []
+        for k in range(n_src):
+            warped, valid = inverse_warp(src[:, k], depth, poses[:, k], cam, wrap=wrap)
+            errors.append(photometric_error(tgt, warped, cfg.ssim_weight, wrap))
+            valids.append(valid.to(depth.dtype))
+            warps.append(warped)
+        if cfg.min_reprojection:
+            err = torch.cat(errors, 1)  # [B,S,H,W]
+            val = torch.cat(valids, 1)
+            big = err.detach().max() + 1
+            err = torch.where(val > 0, err, big)  # a source that cannot see a pixel never wins the minimum
+            best, _ = err.min(1, keepdim=True)
+            use = weight * (val.amax(1, keepdim=True))
+            if cfg.automask:
+                ident = torch.cat(
+                    [photometric_error(tgt, src[:, k], cfg.ssim_weight, wrap) for k in range(n_src)], 1
+                )
+                ident = ident + 1e-5 * torch.randn_like(ident)  # break ties as monodepth2 does
+                use = use * (best < ident.min(1, keepdim=True).values).to(use.dtype)
+            photometric = photometric + _masked_mean(best, use)
+            err_map = best.detach()
+        else:
+            err_map = torch.zeros_like(depth)
+            for k in range(n_src):
+                use = weight * valids[k]
+                if cfg.automask:
+                    ident = photometric_error(tgt, src[:, k], cfg.ssim_weight, wrap)
+                    use = use * (errors[k] < ident).to(use.dtype).detach()
+                e = errors[k]
+                if explainability is not None:
+                    e = e * upsample_like(explainability[s][:, k : k + 1], (h, w), wrap)
+                photometric = photometric + _masked_mean(e, use)
+                err_map = err_map + e.detach() / n_src
+        if explainability is not None and cfg.explain_weight > 0:
+            explain = explain + cfg.explain_weight * n_src * explainability_loss(explainability[s])
+        decay = 2.0**s if cfg.smooth_scale_decay else 1.0
+        if cfg.smooth_weight > 0:
+            smooth = smooth + cfg.smooth_weight / decay * second_order_smoothness(disp, wrap)
+        if cfg.image_smooth_weight > 0:
+            smooth = smooth + cfg.image_smooth_weight / decay * image_aware_smoothness(
+                disp, target_pyramid[s], wrap, cfg.image_smooth_order, cfg.smooth_mean_normalize
+            )
+        if s == 0:
+            warped_log = torch.stack(warps, 1).detach()
+            error_log = err_map
+    total = photometric + smooth + explain
+    terms = {"photometric": photometric, "smooth": smooth, "explain": explain, "total": total}
+    return LossOutput(total=total, terms=terms, warped=warped_log, error=error_log)

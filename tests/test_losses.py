@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from conftest import make_pose
-from cylsfm.geometry import CylindricalCamera, relative_pose
+from cylsfm.geometry import CylindricalCamera, relative_pose, resize_image
 from cylsfm.losses import (
     LossConfig,
     explainability_loss,
@@ -14,7 +14,6 @@ from cylsfm.losses import (
     second_order_smoothness,
     second_order_terms,
     ssim_error,
-    upsample_like,
     view_synthesis_loss,
 )
 
@@ -86,12 +85,12 @@ def test_wrap_aware_ops_commute_with_a_roll():
     assert torch.allclose(ssim_error(r(x), r(y), wrap=True), r(ssim_error(x, y, wrap=True)), atol=1e-6)
     assert not torch.allclose(ssim_error(r(x), r(y), wrap=False), r(ssim_error(x, y, wrap=False)), atol=1e-3)
     small = torch.rand(1, 1, 8, 16)
-    up = upsample_like(small, (16, 32), wrap=True)
+    up = resize_image(small, (16, 32), wrap=True)
     assert torch.allclose(
-        upsample_like(torch.roll(small, 3, -1), (16, 32), True), torch.roll(up, 6, -1), atol=1e-6
+        resize_image(torch.roll(small, 3, -1), (16, 32), True), torch.roll(up, 6, -1), atol=1e-6
     )
     # away from the seam it is the ordinary bilinear upsampling
-    plain = upsample_like(small, (16, 32), wrap=False)
+    plain = resize_image(small, (16, 32), wrap=False)
     assert torch.allclose(up[..., 2:-2], plain[..., 2:-2], atol=1e-6)
     for order in (1, 2):
         d = torch.rand(1, 1, 16, 64)

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .geometry import Camera, inverse_warp
+from .geometry import Camera, inverse_warp, resize_image
 
 __all__ = [
     "LossConfig",
@@ -41,7 +41,6 @@ __all__ = [
     "second_order_smoothness",
     "second_order_terms",
     "ssim_error",
-    "upsample_like",
     "view_synthesis_loss",
 ]
 
@@ -153,25 +152,6 @@ def explainability_loss(mask: Tensor) -> Tensor:
 
 
 # ----------------------------------------------------------------------------- pyramids
-def upsample_like(x: Tensor, size: tuple[int, int], wrap: bool) -> Tensor:
-    """Bilinear resize of ``x [B,C,h,w]`` to ``size = (H, W)`` with ``align_corners=False``.
-
-    With ``wrap`` the interpolation blends across the seam: one column of circular padding on each side
-    is resized along with the image and then cropped away (exact for integer scale factors).
-    """
-    h_out, w_out = size
-    if x.shape[-2:] == (h_out, w_out):
-        return x
-    if not wrap:
-        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
-    w = x.shape[-1]
-    padded = torch.cat((x[..., -1:], x, x[..., :1]), -1)
-    scale = w_out / w
-    big = F.interpolate(padded, size=(h_out, round((w + 2) * scale)), mode="bilinear", align_corners=False)
-    pad = round(scale)
-    return big[..., pad : pad + w_out]
-
-
 def image_pyramid(image: Tensor, sizes: list[tuple[int, int]]) -> list[Tensor]:
     """Area-downsampled copies of ``image [..., C, H, W]`` at ``sizes`` = ``[(H_s, W_s), ...]``.
 
@@ -303,7 +283,7 @@ def view_synthesis_loss(
         if (h, w) not in cams:
             cams[(h, w)] = camera.resized(w, h) if (w, h) != camera.size else camera
         cam = cams[(h, w)]
-        disp_p = upsample_like(disp, (h, w), wrap) if cfg.full_resolution else disp
+        disp_p = resize_image(disp, (h, w), wrap) if cfg.full_resolution else disp
         depth = 1.0 / disp_p.clamp(min=1e-6)
         tgt = photo_targets[s]
         src = source_pyramid[s]
@@ -340,7 +320,7 @@ def view_synthesis_loss(
                     use = use * (errors[k] < ident).to(use.dtype).detach()
                 e = errors[k]
                 if explainability is not None:
-                    e = e * upsample_like(explainability[s][:, k : k + 1], (h, w), wrap)
+                    e = e * resize_image(explainability[s][:, k : k + 1], (h, w), wrap)
                 photometric = photometric + _masked_mean(e, use)
                 err_map = err_map + e.detach() / n_src
         if explainability is not None and cfg.explain_weight > 0:

@@ -18,7 +18,7 @@ from .pose import (
     tum_to_mat,
     yaw_matrix,
 )
-from .warp import inverse_warp, sample_image, transform_points
+from .warp import inverse_warp, resize_image, sample_image, transform_points
 
 __all__ = [
     "Camera",
@@ -37,6 +37,7 @@ __all__ = [
     "pose_vec_to_mat",
     "quaternion_to_matrix",
     "relative_pose",
+    "resize_image",
     "sample_image",
     "transform_points",
     "tum_to_mat",

@@ -28,6 +28,8 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
+from ..errors import CylsfmError
+
 Param = float | Tensor
 
 __all__ = ["Camera", "CameraError", "CylindricalCamera", "PinholeCamera", "load_camera"]
@@ -38,7 +40,7 @@ _FULL_TURN_RTOL = 1e-4
 _EPS = 1e-6
 
 
-class CameraError(ValueError):
+class CameraError(CylsfmError, ValueError):
     """A camera description is invalid (bad file, missing or non-positive parameter ...)."""
 
 

@@ -8,7 +8,7 @@ from torch import Tensor
 
 from .cameras import Camera
 
-__all__ = ["inverse_warp", "sample_image", "transform_points"]
+__all__ = ["inverse_warp", "resize_image", "sample_image", "transform_points"]
 
 _SLACK = 1e-3
 
@@ -107,3 +107,25 @@ def inverse_warp(
         valid = valid & camera.projectable(points) & (depth > 0)
         warped = warped * valid.to(warped.dtype)
     return warped.to(src_image.dtype), valid
+
+
+def resize_image(x: Tensor, size: tuple[int, int], wrap: bool) -> Tensor:
+    """Bilinear resize of ``x [B,C,h,w]`` to ``size = (H, W)`` (``align_corners=False``).
+
+    With ``wrap`` the width is periodic and the interpolation blends across the seam: one column of
+    circular padding on each side is resized with the image and cropped away afterwards. This is exact
+    when ``W`` is an integer multiple of ``w`` (the up-sampling between network scales); other widths
+    are refused with ``wrap``.
+    """
+    h_out, w_out = size
+    if tuple(x.shape[-2:]) == (h_out, w_out):
+        return x
+    if not wrap:
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+    w = x.shape[-1]
+    if w_out % w:
+        raise ValueError(f"a wrapping resize needs an integer width factor, got {w} -> {w_out} columns")
+    factor = w_out // w
+    padded = torch.cat((x[..., -1:], x, x[..., :1]), -1)
+    big = F.interpolate(padded, size=(h_out, (w + 2) * factor), mode="bilinear", align_corners=False)
+    return big[..., factor : factor + w_out]

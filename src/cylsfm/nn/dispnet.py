@@ -1,0 +1,192 @@
+"""SfMLearner's depth (disparity) network with horizontal wrap-around for cylindrical panoramas."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from cylsfm.nn.layers import WrapConv2d, WrapConvTranspose2d, crop_like, wrap_upsample2x
+
+__all__ = ["MIN_HEIGHT", "MIN_WIDTH", "TOTAL_STRIDE", "DispNet", "check_input_size"]
+
+#: Total horizontal stride of the 7 stride-2 encoder stages (2**7).  With wrap-around the panorama
+#: width must be a multiple of it so that every feature map is an exact circular sub-sampling.
+TOTAL_STRIDE = 128
+#: Minimum image height (rows) accepted by the networks.
+MIN_HEIGHT = 32
+#: Minimum image width (columns) accepted by the networks when wrap-around is off.
+MIN_WIDTH = 32
+
+
+def check_input_size(width: int, height: int, wrap: bool) -> None:
+    """Validate an input image size for :class:`DispNet` / :class:`~cylsfm.nn.PoseExpNet`.
+
+    Args:
+        width: image width in pixels (azimuth columns).
+        height: image height in pixels (rows).
+        wrap: whether horizontal wrap-around (full 360° panorama) is on.
+
+    Raises:
+        ValueError: if ``height < 32``; with ``wrap`` if ``width`` is not a positive multiple of 128
+            (the message names the nearest valid widths); without ``wrap`` if ``width < 32``.
+    """
+    width, height = int(width), int(height)
+    if height < MIN_HEIGHT:
+        raise ValueError(f"input height {height} is too small: the networks need height >= {MIN_HEIGHT}")
+    if wrap:
+        if width <= 0 or width % TOTAL_STRIDE != 0:
+            lower = (width // TOTAL_STRIDE) * TOTAL_STRIDE
+            upper = lower + TOTAL_STRIDE
+            nearest = f"{lower} or {upper}" if lower > 0 else f"{upper}"
+            raise ValueError(
+                f"input width {width} is not a multiple of {TOTAL_STRIDE} (the total encoder stride 2^7): "
+                f"with wrap=True the panorama width must be a multiple of {TOTAL_STRIDE} so the wrap-around "
+                f"is exact at every scale; resize it to e.g. {nearest}, or use wrap=False for images that "
+                f"are not full 360° panoramas"
+            )
+    elif width < MIN_WIDTH:
+        raise ValueError(f"input width {width} is too small: the networks need width >= {MIN_WIDTH}")
+
+
+def _check_image(image: torch.Tensor, name: str, wrap: bool) -> None:
+    if image.dim() != 4 or image.shape[1] != 3:
+        raise ValueError(f"{name} must have shape [B, 3, H, W], got {tuple(image.shape)}")
+    check_input_size(image.shape[-1], image.shape[-2], wrap)
+
+
+def init_weights(module: nn.Module) -> None:
+    """Xavier-uniform init of every (transposed) convolution weight in ``module``; zero biases."""
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            nn.init.xavier_uniform_(m.weight)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+
+
+class _ConvReLU(nn.Sequential):
+    def __init__(self, cin: int, cout: int, k: int, stride: int, wrap: bool) -> None:
+        super().__init__(WrapConv2d(cin, cout, k, stride=stride, wrap=wrap), nn.ReLU(inplace=True))
+
+
+class _UpConvReLU(nn.Sequential):
+    def __init__(self, cin: int, cout: int, wrap: bool) -> None:
+        super().__init__(WrapConvTranspose2d(cin, cout, 3, stride=2, wrap=wrap), nn.ReLU(inplace=True))
+
+
+class _DispHead(nn.Module):
+    """3x3 conv to one channel followed by ``alpha * sigmoid + beta``."""
+
+    def __init__(self, cin: int, alpha: float, beta: float, wrap: bool) -> None:
+        super().__init__()
+        self.conv = WrapConv2d(cin, 1, 3, wrap=wrap)
+        self.alpha = alpha
+        self.beta = beta
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.alpha * torch.sigmoid(self.conv(x)) + self.beta
+
+
+class DispNet(nn.Module):
+    """SfMLearner's encoder-decoder disparity network, wrap-around aware.
+
+    Encoder: 7 stages with 32, 64, 128, 256, 512, 512, 512 channels and kernels 7, 5, 3, 3, 3, 3, 3; each
+    stage is a stride-2 conv + ReLU followed by a stride-1 conv + ReLU.  Decoder: 7 up-convolutions
+    (3x3, stride 2) + ReLU with 512, 512, 256, 128, 64, 32, 16 channels, each cropped to the matching
+    skip connection and concatenated with it (and, at the three finest levels, with the x2 up-sampled
+    coarser disparity), followed by a 3x3 conv + ReLU.  Disparities ``alpha * sigmoid(.) + beta`` are
+    predicted at four scales.
+
+    With ``wrap=True`` every convolution, up-convolution and disparity up-sampling treats the width
+    (azimuth) axis as periodic, so for a full 360° panorama rolling the input by ``k`` columns
+    (``k`` a multiple of 128) rolls the disparity at scale ``s`` by ``k / 2**s`` columns.  Use
+    :func:`cylsfm.nn.set_wrap` to change ``wrap`` after construction (it flips every layer).
+
+    Args:
+        wrap: horizontal wrap-around (requires widths that are multiples of 128).
+        alpha: disparity scale; disparities lie in ``(beta, alpha + beta)``.
+        beta: minimum disparity.
+    """
+
+    enc_channels = (32, 64, 128, 256, 512, 512, 512)
+    enc_kernels = (7, 5, 3, 3, 3, 3, 3)
+    dec_channels = (512, 512, 256, 128, 64, 32, 16)
+
+    def __init__(self, wrap: bool = True, alpha: float = 10.0, beta: float = 0.01) -> None:
+        super().__init__()
+        self.wrap = wrap
+        self.alpha = alpha
+        self.beta = beta
+
+        enc_in = (3, *self.enc_channels[:-1])
+        self.encoder = nn.ModuleList(
+            nn.Sequential(_ConvReLU(cin, cout, k, 2, wrap), _ConvReLU(cout, cout, k, 1, wrap))
+            for cin, cout, k in zip(enc_in, self.enc_channels, self.enc_kernels, strict=True)
+        )
+
+        # Decoder level 7 (coarsest) .. 1 (finest).  Skips: conv6 .. conv1 outputs, none at level 1.
+        skips = (*self.enc_channels[:-1][::-1], 0)  # 512, 512, 256, 128, 64, 32, 0
+        up_in = (self.enc_channels[-1], *self.dec_channels[:-1])
+        self.upconvs = nn.ModuleList(
+            _UpConvReLU(cin, cout, wrap) for cin, cout in zip(up_in, self.dec_channels, strict=True)
+        )
+        # The three finest levels also receive the up-sampled coarser disparity (one extra channel).
+        extra = (0, 0, 0, 0, 1, 1, 1)
+        self.iconvs = nn.ModuleList(
+            _ConvReLU(cout + skip + e, cout, 3, 1, wrap)
+            for cout, skip, e in zip(self.dec_channels, skips, extra, strict=True)
+        )
+        # Disparity heads on iconv4, iconv3, iconv2, iconv1 (decoder indices 3..6).
+        self.disp_heads = nn.ModuleList(_DispHead(c, alpha, beta, wrap) for c in self.dec_channels[3:])
+
+        init_weights(self)
+
+    @staticmethod
+    def check_input_size(width: int, height: int, wrap: bool) -> None:
+        """Validate an image size; see :func:`cylsfm.nn.dispnet.check_input_size`.
+
+        Raises:
+            ValueError: if the size is not accepted (e.g. width not a multiple of 128 with wrap).
+        """
+        check_input_size(width, height, wrap)
+
+    def forward(self, image: torch.Tensor) -> list[torch.Tensor]:
+        """Predict multi-scale disparity.
+
+        Args:
+            image: RGB image ``[B, 3, H, W]`` with values in ``[0, 1]``; it is normalised internally
+                as ``(image - 0.5) / 0.5``.  ``H >= 32``; with ``wrap`` ``W`` must be a multiple of 128,
+                otherwise ``W >= 32``.
+
+        Returns:
+            Four disparity maps (inverse depth, in units of 1 / the depth scale), finest first:
+            ``[B, 1, H_s, W_s]`` for ``s = 0..3`` where ``H_0 = H`` and ``H_s = ceil(H_{s-1} / 2)``
+            (likewise for ``W``; exactly ``H / 2**s`` for multiples of 8).  Values lie in
+            ``(beta, alpha + beta)``.
+
+        Raises:
+            ValueError: for a wrongly shaped input or an unsupported size (see :meth:`check_input_size`).
+        """
+        _check_image(image, "image", self.wrap)
+        x = (image - 0.5) / 0.5
+        feats = []
+        for stage in self.encoder:
+            x = stage(x)
+            feats.append(x)
+        # Skip for decoder level i (0 = coarsest): conv6 .. conv1 outputs, then the input image size.
+        skip_feats: list[torch.Tensor | None] = [*feats[:-1][::-1], None]
+        ref_sizes = [*feats[:-1][::-1], image]
+
+        disps: list[torch.Tensor] = []
+        x = feats[-1]
+        for i, (upconv, iconv) in enumerate(zip(self.upconvs, self.iconvs, strict=True)):
+            x = crop_like(upconv(x), ref_sizes[i])
+            parts = [x]
+            skip = skip_feats[i]
+            if skip is not None:
+                parts.append(skip)
+            if disps:
+                parts.append(crop_like(wrap_upsample2x(disps[-1], self.wrap), x))
+            x = iconv(torch.cat(parts, dim=1))
+            if i >= 3:
+                disps.append(self.disp_heads[i - 3](x))
+        return disps[::-1]

@@ -1,0 +1,247 @@
+"""Wrap-aware convolution layers for 360° cylindrical panoramas.
+
+All tensors are image-like, shaped ``[B, C, H, W]``: ``H`` is the vertical (image row) axis and ``W``
+is azimuth.  For a full 360° panorama the width axis is periodic, so the layers here can treat it
+as a circle ("wrap" on): horizontal padding copies columns from the opposite edge instead of
+inserting zeros, which makes every layer equivariant to horizontal rolls (yaw rotations of the
+camera about its vertical y axis) by a whole number of output columns.  Vertical padding is always
+zero padding.  With wrap off each layer behaves exactly like its ordinary ``torch.nn`` counterpart,
+which is what partial panoramas and perspective images need.
+
+The switch is a plain boolean attribute ``wrap`` on every wrap-aware module; the weights are the same
+either way, so a trained network can be evaluated with or without wrap-around (see :func:`set_wrap`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..geometry import resize_image
+
+__all__ = ["WrapConv2d", "WrapConvTranspose2d", "crop_like", "set_wrap", "wrap_upsample2x"]
+
+
+def _memory_format_of(x: torch.Tensor) -> torch.memory_format:
+    """``torch.channels_last`` if ``x`` (4-D) is stored channels-last, else ``torch.contiguous_format``."""
+    if x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous():
+        return torch.channels_last
+    return torch.contiguous_format
+
+
+def _circular_pad_width(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
+    """Pad the last (width) dimension of ``x`` circularly by ``left`` / ``right`` columns.
+
+    Args:
+        x: tensor ``[..., W]`` with ``W >= 1``.
+        left: number of columns taken from the right edge and prepended (``>= 0``).
+        right: number of columns taken from the left edge and appended (``>= 0``).
+
+    Returns:
+        Tensor ``[..., left + W + right]`` with the same memory format as ``x``.  Unlike
+        ``F.pad(..., mode="circular")`` the padding may exceed ``W`` (the panorama then wraps around
+        more than once), and channels-last inputs stay channels-last (``F.pad`` in circular mode
+        returns a standard-contiguous tensor for a channels-last input).
+    """
+    w = x.shape[-1]
+    if left == 0 and right == 0:
+        return x
+    if left <= w and right <= w:
+        pieces = []
+        if left > 0:
+            pieces.append(x[..., w - left :])
+        pieces.append(x)
+        if right > 0:
+            pieces.append(x[..., :right])
+        return torch.cat(pieces, dim=-1)  # one copy; preserves channels_last
+    # Very narrow feature maps (e.g. width 1 at the deepest level): tile then slice.
+    n_left = math.ceil(left / w)
+    n_right = math.ceil(right / w)
+    tiled = torch.cat([x] * (n_left + 1 + n_right), dim=-1)
+    start = n_left * w - left
+    out = tiled[..., start : start + left + w + right]
+    return out.contiguous(memory_format=_memory_format_of(x))
+
+
+class WrapConv2d(nn.Conv2d):
+    """2-D convolution with "same"-style padding that wraps around horizontally.
+
+    The padding is ``p = (kernel_size - 1) // 2`` on every side.  With ``wrap=True`` the ``p`` columns
+    on each side are copied circularly from the opposite edge (one ``torch.cat`` copy) and the
+    vertical padding is ordinary zero padding done by the convolution itself.  With ``wrap=False``
+    this is exactly ``nn.Conv2d(..., padding=p)``.
+
+    Shapes:
+        input ``[B, in_channels, H, W]`` -> output ``[B, out_channels, H_out, W_out]`` with
+        ``H_out = floor((H + 2p - k) / stride) + 1`` (``ceil(H / stride)`` for odd ``k``), and ``W_out``
+        likewise.  With wrap on, rolling the input by ``stride * m`` columns rolls the output by ``m``
+        columns exactly when ``W`` is a multiple of ``stride``.
+
+    Channels-last inputs give channels-last outputs.
+
+    Args:
+        in_channels: input channels.
+        out_channels: output channels.
+        kernel_size: square kernel size ``k`` (odd sizes give symmetric "same" padding).
+        stride: stride in both directions.
+        bias: whether to learn an additive bias.
+        wrap: initial value of the ``wrap`` switch (may be changed later, see :func:`set_wrap`).
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int,
+        stride: int = 1,
+        bias: bool = True,
+        wrap: bool = True,
+    ) -> None:
+        pad = (kernel_size - 1) // 2
+        super().__init__(in_channels, out_channels, kernel_size, stride=stride, padding=pad, bias=bias)
+        self.wrap = wrap
+        self.pad = pad
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Convolve ``x`` ``[B, in_channels, H, W]`` -> ``[B, out_channels, H_out, W_out]``."""
+        if not self.wrap or self.pad == 0:
+            return super().forward(x)
+        x = _circular_pad_width(x, self.pad, self.pad)
+        return F.conv2d(x, self.weight, self.bias, self.stride, (self.pad, 0))
+
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, wrap={self.wrap}"
+
+
+class WrapConvTranspose2d(nn.ConvTranspose2d):
+    """Transposed ("up-") convolution whose width axis is treated as a circle when ``wrap`` is on.
+
+    Defaults give the SfMLearner up-convolution: kernel 3, stride 2, padding 1, output padding 1, so
+    an input ``[B, C, H, W]`` produces exactly ``[B, out_channels, 2H, 2W]``.  In general the padding is
+    ``p = (k - 1) // 2`` and the output padding ``s + 2p - k`` is chosen so the output is
+    ``[B, out_channels, s*H, s*W]``.
+
+    With ``wrap=True`` the horizontal direction is the exact circular transposed convolution, i.e.
+    the adjoint of the circular strided convolution of :class:`WrapConv2d`: output column ``o``
+    receives input column ``i`` through kernel tap ``kk`` when ``o ≡ s*i + kk - p (mod s*W)``.  It is
+    computed by padding the input circularly by ``q = ceil((k - 1) / s) + 1`` columns on each side,
+    running the transposed convolution with zero horizontal padding (vertical padding / output
+    padding as usual), and keeping output columns ``[s*q + p, s*q + p + s*W)``.  Rolling the input by
+    ``m`` columns then rolls the output by ``s*m`` columns.  With ``wrap=False`` this is exactly
+    ``nn.ConvTranspose2d``.
+
+    The output is contiguous in the memory format of the input (channels-last stays channels-last).
+
+    Args:
+        in_channels: input channels.
+        out_channels: output channels.
+        kernel_size: square kernel size ``k``.
+        stride: up-sampling factor ``s`` in both directions.
+        bias: whether to learn an additive bias.
+        wrap: initial value of the ``wrap`` switch (may be changed later, see :func:`set_wrap`).
+
+    Raises:
+        ValueError: if no valid output padding gives an output of exactly ``s`` times the input size.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int = 3,
+        stride: int = 2,
+        bias: bool = True,
+        wrap: bool = True,
+    ) -> None:
+        pad = (kernel_size - 1) // 2
+        out_pad = stride + 2 * pad - kernel_size
+        if not 0 <= out_pad < stride:
+            raise ValueError(
+                f"WrapConvTranspose2d: kernel_size={kernel_size}, stride={stride} cannot give an output of "
+                f"exactly stride * input size (would need output_padding={out_pad}, valid range [0, {stride}))"
+            )
+        super().__init__(
+            in_channels,
+            out_channels,
+            kernel_size,
+            stride=stride,
+            padding=pad,
+            output_padding=out_pad,
+            bias=bias,
+        )
+        self.wrap = wrap
+        self.pad = pad
+        self.out_pad = out_pad
+        self.wrap_margin = math.ceil((kernel_size - 1) / stride) + 1
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        """Up-convolve ``x`` ``[B, in_channels, H, W]`` -> ``[B, out_channels, s*H, s*W]``."""
+        fmt = _memory_format_of(x)
+        if not self.wrap:
+            return super().forward(x).contiguous(memory_format=fmt)
+        s = self.stride[1]
+        q = self.wrap_margin
+        width = x.shape[-1]
+        xp = _circular_pad_width(x, q, q)
+        out = F.conv_transpose2d(
+            xp,
+            self.weight,
+            self.bias,
+            self.stride,
+            padding=(self.pad, 0),
+            output_padding=(self.out_pad, 0),
+        )
+        start = s * q + self.pad
+        return out[..., start : start + s * width].contiguous(memory_format=fmt)
+
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, wrap={self.wrap}"
+
+
+def wrap_upsample2x(x: torch.Tensor, wrap: bool) -> torch.Tensor:
+    """Bilinear x2 up-sampling (``align_corners=False``), blending across the seam when ``wrap``.
+
+    With ``wrap`` the input is padded circularly by one column on each side, up-sampled to
+    ``[2H, 2(W + 2)]`` and cropped by two columns on each side.  This is exactly bilinear
+    interpolation on a periodic width axis: output column ``o`` samples input coordinate
+    ``(o + 0.5) / 2 - 0.5``, which in padded coordinates is shifted by one and never needs
+    edge clamping.  Vertically (and horizontally when ``wrap`` is False) edges are clamped as in
+    ``F.interpolate``.
+
+    Args:
+        x: tensor ``[B, C, H, W]`` (any units; e.g. disparity in 1/depth units).
+        wrap: treat the width axis as periodic.
+
+    Returns:
+        Tensor ``[B, C, 2H, 2W]``.
+    """
+    return resize_image(x, (2 * x.shape[-2], 2 * x.shape[-1]), wrap)
+
+
+def crop_like(x: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Crop ``x`` ``[B, C, H, W]`` to the height and width of ``ref`` ``[B', C', H', W']`` (top-left corner).
+
+    Used, as in SfMLearner, where an up-convolution output (``2 * ceil(H / 2)`` rows) is one row or
+    column larger than the matching skip connection.  Returns a view ``[B, C, H', W']``.
+
+    Raises:
+        ValueError: if ``x`` is smaller than ``ref`` in either spatial dimension.
+    """
+    h, w = ref.shape[-2], ref.shape[-1]
+    if x.shape[-2] < h or x.shape[-1] < w:
+        raise ValueError(f"crop_like: cannot crop {tuple(x.shape)} to spatial size ({h}, {w})")
+    return x[..., :h, :w]
+
+
+def set_wrap(module: nn.Module, wrap: bool) -> None:
+    """Set the ``wrap`` switch of ``module`` and of all its submodules that have one.
+
+    A module is wrap-aware if it has a boolean attribute ``wrap`` (all layers in this file, and
+    :class:`~cylsfm.nn.DispNet` / :class:`~cylsfm.nn.PoseExpNet` themselves).  Weights are unchanged.
+    """
+    for m in module.modules():
+        if isinstance(getattr(m, "wrap", None), bool):
+            m.wrap = bool(wrap)

@@ -1,0 +1,130 @@
+"""SfMLearner's pose / explainability network with horizontal wrap-around for cylindrical panoramas."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from cylsfm.nn.dispnet import _check_image, check_input_size, init_weights
+from cylsfm.nn.layers import WrapConv2d, WrapConvTranspose2d, crop_like
+
+__all__ = ["PoseExpNet"]
+
+
+class PoseExpNet(nn.Module):
+    """Relative pose and explainability-mask network (SfMLearner), wrap-around aware.
+
+    The target frame and the ``S = n_sources`` source frames are concatenated along channels (target
+    first) into a ``3 * (1 + S)``-channel image.  Encoder: 7 stride-2 convs + ReLU with 16, 32, 64,
+    128, 256, 256, 256 channels and kernels 7, 5, 3, 3, 3, 3, 3.  Pose head: 1x1 conv to ``6 * S``
+    channels, averaged over all positions, scaled by 0.01.  Explainability decoder (optional): from
+    the conv5 output, 5 up-convolutions + ReLU (256, 128, 64, 32, 16 channels), each cropped to the
+    size of the matching encoder feature (conv4, conv3, conv2, conv1, input), with sigmoid masks
+    (3x3 conv to ``S`` channels) at the last four.
+
+    Pose convention: each 6-vector is ``(tx, ty, tz, rx, ry, rz)``, the translation (in the scale of
+    the predicted depth) and the axis-angle rotation (radians) of the rigid transform
+    ``T_tgt_to_src`` that maps 3-D points in the target camera frame into source camera ``j`` (camera
+    axes: x right, y down, z forward).  Conversion to 4x4 matrices is done in :mod:`cylsfm.geometry`.
+
+    Note that averaging over all positions makes the pose output invariant to a common horizontal
+    roll of all frames (with wrap on), although physically a yaw rotation of the rig should rotate
+    the predicted translation and rotation; this is the behaviour of the original architecture.
+
+    Args:
+        n_sources: number of source frames ``S``.
+        explainability: whether to build and run the explainability-mask decoder.
+        wrap: horizontal wrap-around (requires widths that are multiples of 128).
+    """
+
+    enc_channels = (16, 32, 64, 128, 256, 256, 256)
+    enc_kernels = (7, 5, 3, 3, 3, 3, 3)
+    dec_channels = (256, 128, 64, 32, 16)
+
+    def __init__(self, n_sources: int = 2, explainability: bool = True, wrap: bool = True) -> None:
+        super().__init__()
+        if n_sources < 1:
+            raise ValueError(f"n_sources must be >= 1, got {n_sources}")
+        self.n_sources = n_sources
+        self.explainability = explainability
+        self.wrap = wrap
+
+        enc_in = (3 * (1 + n_sources), *self.enc_channels[:-1])
+        self.encoder = nn.ModuleList(
+            nn.Sequential(WrapConv2d(cin, cout, k, stride=2, wrap=wrap), nn.ReLU(inplace=True))
+            for cin, cout, k in zip(enc_in, self.enc_channels, self.enc_kernels, strict=True)
+        )
+        self.pose_pred = WrapConv2d(self.enc_channels[-1], 6 * n_sources, 1, wrap=wrap)
+
+        self.upconvs: nn.ModuleList | None = None
+        self.mask_heads: nn.ModuleList | None = None
+        if explainability:
+            up_in = (self.enc_channels[4], *self.dec_channels[:-1])
+            self.upconvs = nn.ModuleList(
+                nn.Sequential(WrapConvTranspose2d(cin, cout, 3, stride=2, wrap=wrap), nn.ReLU(inplace=True))
+                for cin, cout in zip(up_in, self.dec_channels, strict=True)
+            )
+            # Masks at upconv4, upconv3, upconv2, upconv1 (decoder indices 1..4).
+            self.mask_heads = nn.ModuleList(
+                WrapConv2d(c, n_sources, 3, wrap=wrap) for c in self.dec_channels[1:]
+            )
+
+        init_weights(self)
+
+    @staticmethod
+    def check_input_size(width: int, height: int, wrap: bool) -> None:
+        """Validate an image size (same rules as :meth:`cylsfm.nn.DispNet.check_input_size`).
+
+        Raises:
+            ValueError: if the size is not accepted (e.g. width not a multiple of 128 with wrap).
+        """
+        check_input_size(width, height, wrap)
+
+    def forward(
+        self, target: torch.Tensor, sources: torch.Tensor
+    ) -> tuple[torch.Tensor, list[torch.Tensor] | None]:
+        """Predict target-to-source poses and explainability masks.
+
+        Args:
+            target: target frame ``[B, 3, H, W]``, values in ``[0, 1]``.
+            sources: source frames ``[B, S, 3, H, W]``, values in ``[0, 1]``.  Both are normalised
+                internally as ``(x - 0.5) / 0.5``.  ``H >= 32``; with ``wrap`` ``W`` must be a
+                multiple of 128, otherwise ``W >= 32``.
+
+        Returns:
+            ``(pose, masks)``: ``pose`` is ``[B, S, 6]`` = ``(tx, ty, tz, rx, ry, rz)`` of ``T_tgt_to_src``
+            (translation in depth units, axis-angle rotation in radians) for each source; ``masks`` is a
+            list of four per-source explainability masks in ``(0, 1)``, finest first, shaped
+            ``[B, S, H_s, W_s]`` for ``s = 0..3`` (``H_0 = H``, ``H_s = ceil(H_{s-1} / 2)``, likewise
+            ``W``), or ``None`` when ``explainability`` is False.
+
+        Raises:
+            ValueError: for wrongly shaped inputs or an unsupported size.
+        """
+        _check_image(target, "target", self.wrap)
+        b, s = target.shape[0], self.n_sources
+        if sources.dim() != 5 or tuple(sources.shape) != (b, s, 3, *target.shape[-2:]):
+            raise ValueError(
+                f"sources must have shape [B, S, 3, H, W] = {[b, s, 3, *target.shape[-2:]]}, "
+                f"got {list(sources.shape)}"
+            )
+        x = torch.cat([target, sources.flatten(1, 2)], dim=1)
+        x = (x - 0.5) / 0.5
+
+        feats = []
+        for stage in self.encoder:
+            x = stage(x)
+            feats.append(x)
+
+        pose = 0.01 * self.pose_pred(feats[-1]).mean(dim=(2, 3)).view(b, s, 6)
+
+        if self.upconvs is None or self.mask_heads is None:
+            return pose, None
+        refs = [feats[3], feats[2], feats[1], feats[0], target]  # conv4, conv3, conv2, conv1, input
+        masks: list[torch.Tensor] = []
+        x = feats[4]
+        for i, upconv in enumerate(self.upconvs):
+            x = crop_like(upconv(x), refs[i])
+            if i >= 1:
+                masks.append(torch.sigmoid(self.mask_heads[i - 1](x)))
+        return pose, masks[::-1]

@@ -157,7 +157,7 @@ def test_wrap_conv_transpose_roll_equivariance_and_channels_last() -> None:
         layer(torch.roll(x, 3, dims=-1)), torch.roll(layer(x), 6, dims=-1), atol=1e-5, rtol=0
     )
     out_cl = layer(x.contiguous(memory_format=torch.channels_last))
-    assert out_cl.is_contiguous(memory_format=torch.channels_last)
+    assert out_cl.stride(1) == 1  # channels stay innermost (the output is a column window, a view)
     torch.testing.assert_close(out_cl, layer(x), atol=1e-5, rtol=1e-5)
 
 

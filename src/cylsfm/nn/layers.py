@@ -32,6 +32,36 @@ def _memory_format_of(x: torch.Tensor) -> torch.memory_format:
     return torch.contiguous_format
 
 
+class _CircularPadWidth(torch.autograd.Function):
+    """Circular padding of the width with a lean backward pass.
+
+    Forward is one copy (``torch.cat`` of the edge columns and the input). Autograd's own backward of that
+    ``cat`` would materialise a zero-filled full-size gradient for every edge slice and add them up; here
+    the gradient is the centre of the incoming gradient plus the edge gradients added into the opposite
+    columns: one copy.
+    """
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, left: int, right: int) -> torch.Tensor:  # type: ignore[override]
+        w = x.shape[-1]
+        ctx.pads = (left, right, w)
+        pieces = [x[..., w - left :]] if left else []
+        pieces.append(x)
+        if right:
+            pieces.append(x[..., :right])
+        return torch.cat(pieces, dim=-1)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        left, right, w = ctx.pads
+        gx = grad[..., left : left + w].clone(memory_format=_memory_format_of(grad))
+        if left:
+            gx[..., w - left :] += grad[..., :left]
+        if right:
+            gx[..., :right] += grad[..., left + w :]
+        return gx, None, None
+
+
 def _circular_pad_width(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
     """Pad the last (width) dimension of ``x`` circularly by ``left`` / ``right`` columns.
 
@@ -50,13 +80,7 @@ def _circular_pad_width(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
     if left == 0 and right == 0:
         return x
     if left <= w and right <= w:
-        pieces = []
-        if left > 0:
-            pieces.append(x[..., w - left :])
-        pieces.append(x)
-        if right > 0:
-            pieces.append(x[..., :right])
-        return torch.cat(pieces, dim=-1)  # one copy; preserves channels_last
+        return _CircularPadWidth.apply(x, left, right)
     # Very narrow feature maps (e.g. width 1 at the deepest level): tile then slice.
     n_left = math.ceil(left / w)
     n_right = math.ceil(right / w)
@@ -127,13 +151,14 @@ class WrapConvTranspose2d(nn.ConvTranspose2d):
     With ``wrap=True`` the horizontal direction is the exact circular transposed convolution, i.e.
     the adjoint of the circular strided convolution of :class:`WrapConv2d`: output column ``o``
     receives input column ``i`` through kernel tap ``kk`` when ``o ≡ s*i + kk - p (mod s*W)``.  It is
-    computed by padding the input circularly by ``q = ceil((k - 1) / s) + 1`` columns on each side,
-    running the transposed convolution with zero horizontal padding (vertical padding / output
-    padding as usual), and keeping output columns ``[s*q + p, s*q + p + s*W)``.  Rolling the input by
-    ``m`` columns then rolls the output by ``s*m`` columns.  With ``wrap=False`` this is exactly
-    ``nn.ConvTranspose2d``.
+    computed by padding the input circularly by the few columns that reach into ``[0, s*W)`` across
+    the seam (``l = (k - 1 - p) // s`` on the left, ``r = (s - 1 + p) // s`` on the right: 0 and 1 for the
+    SfMLearner up-convolution), running the ordinary transposed convolution on it and keeping output
+    columns ``[s*l, s*l + s*W)``.  Rolling the input by ``m`` columns then rolls the output by ``s*m``
+    columns.  With ``wrap=False`` this is exactly ``nn.ConvTranspose2d``.
 
-    The output is contiguous in the memory format of the input (channels-last stays channels-last).
+    With wrap the output is a view (a column window) of the convolution's result: the consumers (a
+    concatenation with a skip connection, a convolution) copy it anyway.
 
     Args:
         in_channels: input channels.
@@ -173,29 +198,18 @@ class WrapConvTranspose2d(nn.ConvTranspose2d):
             bias=bias,
         )
         self.wrap = wrap
-        self.pad = pad
-        self.out_pad = out_pad
-        self.wrap_margin = math.ceil((kernel_size - 1) / stride) + 1
+        self.wrap_left = max(0, (kernel_size - 1 - pad) // stride)
+        self.wrap_right = (stride - 1 + pad) // stride
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         """Up-convolve ``x`` ``[B, in_channels, H, W]`` -> ``[B, out_channels, s*H, s*W]``."""
-        fmt = _memory_format_of(x)
         if not self.wrap:
-            return super().forward(x).contiguous(memory_format=fmt)
+            return super().forward(x)
         s = self.stride[1]
-        q = self.wrap_margin
         width = x.shape[-1]
-        xp = _circular_pad_width(x, q, q)
-        out = F.conv_transpose2d(
-            xp,
-            self.weight,
-            self.bias,
-            self.stride,
-            padding=(self.pad, 0),
-            output_padding=(self.out_pad, 0),
-        )
-        start = s * q + self.pad
-        return out[..., start : start + s * width].contiguous(memory_format=fmt)
+        out = super().forward(_circular_pad_width(x, self.wrap_left, self.wrap_right))
+        start = s * self.wrap_left
+        return out[..., start : start + s * width]
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, wrap={self.wrap}"

@@ -18,7 +18,9 @@ def test_version_and_help(capsys):
 
 
 def test_console_script_runs():
-    out = subprocess.run([sys.executable, "-m", "cylsfm.cli", "--help"], capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "cylsfm.cli", "--help"], capture_output=True, text=True, check=True
+    )
     assert "demo" in out.stdout
 
 

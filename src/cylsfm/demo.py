@@ -34,7 +34,9 @@ def _colour_depth(depth: np.ndarray) -> np.ndarray:
     return np.stack((inv, inv**1.5, inv**3), -1)
 
 
-def run_demo(out: str | Path, minutes: float = 1.0, seed: int = 0, width: int = 256, height: int = 64) -> dict:
+def run_demo(
+    out: str | Path, minutes: float = 1.0, seed: int = 0, width: int = 256, height: int = 64
+) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(seed)

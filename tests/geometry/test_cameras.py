@@ -161,3 +161,25 @@ def test_batched_intrinsics_match_per_camera_results():
     diff[:, 0] = torch.remainder(diff[:, 0] + 32, 64) - 32  # azimuth is periodic
     assert diff.abs().max() < 1e-3
     assert stacked.wraps
+
+
+def test_equirectangular_conventions_and_round_trip():
+    from cylsfm.geometry import EquirectangularCamera
+
+    cam = EquirectangularCamera.full(360, 180)
+    assert cam.wraps
+    # straight ahead is the image centre: x_e = W/2 - 1/2, y_e = H/2 - 1/2
+    p = torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64).view(1, 3, 1, 1)
+    assert cam.project(p).flatten().tolist() == pytest.approx([179.5, 89.5])
+    # 45 degrees right and 30 degrees down
+    d = torch.tensor(
+        [math.cos(math.pi / 6) * math.sin(math.pi / 4), 0.5, math.cos(math.pi / 6) * math.cos(math.pi / 4)]
+    )
+    u, v = cam.project((3 * d).double().view(1, 3, 1, 1)).flatten().tolist()
+    assert u == pytest.approx(360 * (1 / 8 + 0.5) - 0.5) and v == pytest.approx(180 * (1 / 6 + 0.5) - 0.5)
+    depth = torch.rand(2, 1, 180, 360, dtype=torch.float64) * 30 + 0.5
+    pts = cam.unproject(depth)
+    assert torch.allclose(cam.depth_of(pts), depth)
+    diff = cam.project(pts) - cam.pixel_grid(2, dtype=torch.float64)
+    diff[:, 0] = torch.remainder(diff[:, 0] + 180, 360) - 180
+    assert diff.abs().max() < 1e-8

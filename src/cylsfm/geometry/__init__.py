@@ -3,7 +3,7 @@
 Nothing here knows about networks or datasets.
 """
 
-from .cameras import Camera, CameraError, CylindricalCamera, PinholeCamera, load_camera
+from .cameras import Camera, CameraError, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
 from .pose import (
     axis_angle_to_matrix,
     compose,
@@ -24,6 +24,7 @@ __all__ = [
     "Camera",
     "CameraError",
     "CylindricalCamera",
+    "EquirectangularCamera",
     "PinholeCamera",
     "axis_angle_to_matrix",
     "compose",

@@ -9,7 +9,8 @@ Conventions (see ``docs/conventions.md``):
   ``v = fy * h + cy``; a full 360 degree panorama of width ``W`` has ``fx = W / (2 pi)`` and ``cx = W / 2``;
 * cylindrical depth is ``d = sqrt(x^2 + z^2)`` (horizontal distance from the vertical axis) and
   ``unproject = d * (sin theta, h, cos theta)``;
-* pinhole depth is ``z``.
+* pinhole depth is ``z``;
+* equirectangular: ``u = fx * theta + cx``, ``v = fy * asin(y / |p|) + cy``, depth is the range ``|p|``.
 
 Every camera holds scalar intrinsics (floats) or, for a batch of different cameras, tensors of shape
 ``[B]``. All methods are differentiable in the points / depths and work on any device and float dtype.
@@ -32,7 +33,14 @@ from ..errors import CylsfmError
 
 Param = float | Tensor
 
-__all__ = ["Camera", "CameraError", "CylindricalCamera", "PinholeCamera", "load_camera"]
+__all__ = [
+    "Camera",
+    "CameraError",
+    "CylindricalCamera",
+    "EquirectangularCamera",
+    "PinholeCamera",
+    "load_camera",
+]
 
 # Relative tolerance with which ``fx * 2 pi`` must equal the width for a camera to count as a full 360
 # degree panorama.
@@ -398,7 +406,77 @@ class PinholeCamera(Camera):
         return points[:, 2:3] > _EPS
 
 
-_MODELS: dict[str, type[Camera]] = {"cylindrical": CylindricalCamera, "pinhole": PinholeCamera}
+@dataclass(frozen=True)
+class EquirectangularCamera(Camera):
+    """An equirectangular (latitude-longitude) panorama, the usual output of 360-degree cameras.
+
+    ``u = fx * theta + cx``, ``v = fy * phi + cy`` with ``theta = atan2(x, z)`` and the elevation
+    ``phi = asin(y / |p|)`` (positive downwards); depth is the range ``|p|``. The full sphere of a
+    ``W x H`` image has ``fx = W / (2 pi)``, ``cx = W / 2 - 1/2``, ``fy = H / pi``, ``cy = H / 2 - 1/2``
+    (:meth:`full`), i.e. ``x_e = W (theta / 2 pi + 1/2) - 1/2`` and ``y_e = H (phi / pi + 1/2) - 1/2``.
+    """
+
+    model: ClassVar[str] = "equirectangular"
+
+    @classmethod
+    def full(cls, width: int, height: int) -> EquirectangularCamera:
+        """The whole sphere in a ``width x height`` image (usually ``width == 2 * height``)."""
+        return cls(
+            width=width,
+            height=height,
+            fx=width / (2 * math.pi),
+            cx=width / 2 - 0.5,
+            fy=height / math.pi,
+            cy=height / 2 - 0.5,
+        )
+
+    @property
+    def wraps(self) -> bool:
+        fx = self.fx
+        if isinstance(fx, Tensor):
+            return bool(((fx * 2 * math.pi - self.width).abs() <= _FULL_TURN_RTOL * self.width).all())
+        return abs(fx * 2 * math.pi - self.width) <= _FULL_TURN_RTOL * self.width
+
+    def project(self, points: Tensor) -> Tensor:
+        _check_image_tensor(points, 3, "points")
+        x, y, z = points[:, 0], points[:, 1], points[:, 2]
+        r2 = x * x + z * z
+        small = r2 < _EPS * _EPS
+        z = torch.where(small, torch.full_like(z, _EPS), z)
+        x = torch.where(small, torch.zeros_like(x), x)
+        theta = torch.atan2(x, z)
+        phi = torch.atan2(y, torch.sqrt(torch.clamp(x * x + z * z, min=_EPS * _EPS)))
+        u = _bcast(self.fx, theta) * theta + _bcast(self.cx, theta)
+        v = _bcast(self.fy, phi) * phi + _bcast(self.cy, phi)
+        return torch.stack((u, v), 1)
+
+    def rays(self, uv: Tensor) -> Tensor:
+        """Unit-range directions (``|ray| = 1``) for pixel coordinates ``uv [B,2,...]``."""
+        u, v = uv[:, 0], uv[:, 1]
+        theta = (u - _bcast(self.cx, u)) / _bcast(self.fx, u)
+        phi = (v - _bcast(self.cy, v)) / _bcast(self.fy, v)
+        c = torch.cos(phi)
+        return torch.stack((c * torch.sin(theta), torch.sin(phi), c * torch.cos(theta)), 1)
+
+    def unproject(self, depth: Tensor) -> Tensor:
+        _check_image_tensor(depth, 1, "depth")
+        b, _, hgt, wid = depth.shape
+        if (wid, hgt) != self.size:
+            raise ValueError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
+        return self.rays(self.pixel_grid(b, depth.device, depth.dtype)) * depth
+
+    def depth_of(self, points: Tensor) -> Tensor:
+        return torch.linalg.vector_norm(points[:, 0:3], dim=1, keepdim=True)
+
+    def projectable(self, points: Tensor) -> Tensor:
+        return (points[:, 0:1] ** 2 + points[:, 2:3] ** 2) > _EPS * _EPS
+
+
+_MODELS: dict[str, type[Camera]] = {
+    "cylindrical": CylindricalCamera,
+    "pinhole": PinholeCamera,
+    "equirectangular": EquirectangularCamera,
+}
 
 
 def load_camera(path: str | os.PathLike[str]) -> Camera:

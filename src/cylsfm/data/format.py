@@ -375,7 +375,8 @@ def find_sequence_dirs(root: PathLike) -> list[Path]:
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset root not found or not a directory")
     if (root / "camera.json").exists():
-        return [root]
+        # normalised (not resolved), so that "." or "seq/.." still name the sequence
+        return [Path(os.path.abspath(root))]
     seqs = []
     for child in sorted(root.iterdir(), key=lambda p: p.name):
         if child.name.startswith(".") or not child.is_dir():

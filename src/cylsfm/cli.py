@@ -145,6 +145,93 @@ def _synth(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------- train
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 512x128, got {text!r}") from None
+    return w, h
+
+
+def _train_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", help="dataset root (format v1 or the original SfMLearner strips)")
+    p.add_argument("--out", required=True, help="run directory (config, checkpoints, logs)")
+    p.add_argument("--config", help="YAML file: a preset name and any fields to change")
+    p.add_argument("--preset", help="paper-synthia | paper-headcam | improved | default")
+    p.add_argument("--size", type=_size, help="training size WxH (e.g. 512x128)")
+    p.add_argument("--batch-size", type=int)
+    p.add_argument("--max-steps", type=int)
+    p.add_argument("--minutes", type=float, help="wall-clock budget; stops with a checkpoint when spent")
+    p.add_argument("--wrap", action=argparse.BooleanOptionalAction, default=None, help="wrap-around on/off")
+    p.add_argument(
+        "--fov", type=float, help="train on the centred crop of this many degrees (no wrap below 360)"
+    )
+    p.add_argument("--pose-head", choices=["mean", "equivariant"])
+    p.add_argument(
+        "--roll", action=argparse.BooleanOptionalAction, default=None, help="random yaw-roll augmentation"
+    )
+    p.add_argument("--mask", help="static mask image: white = pixels to use (e.g. without the helmet)")
+    p.add_argument("--split", help="split to train on (train, val, test, a split file path, or 'all')")
+    p.add_argument("--workers", type=int, help="data loader processes")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--device", help="auto | cpu | cuda | cuda:N")
+    p.add_argument(
+        "--resume", action="store_true", help="continue the run in --out from its latest checkpoint"
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("overrides", nargs="*", help="further settings as key=value, e.g. loss.ssim_weight=0.85")
+
+
+def train_config_from_args(args: argparse.Namespace):
+    """The resolved training configuration of ``cylsfm train`` arguments."""
+    from .train.config import apply_overrides, load_config, preset
+
+    cfg = load_config(args.config) if args.config else preset(args.preset or "default")
+    if args.config and args.preset:
+        cfg = apply_overrides(preset(args.preset), [])  # an explicit preset replaces the file's
+    items = list(args.overrides or [])
+    flag_map = {
+        "data": "data.root",
+        "batch_size": "batch_size",
+        "max_steps": "max_steps",
+        "minutes": "minutes",
+        "wrap": "model.wrap",
+        "fov": "data.fov",
+        "pose_head": "model.pose_head",
+        "roll": "data.roll",
+        "mask": "data.mask",
+        "workers": "data.workers",
+        "seed": "seed",
+        "device": "device",
+    }
+    pre = []
+    for name, key in flag_map.items():
+        value = getattr(args, name, None)
+        if value is not None:
+            pre.append(f"{key}={value}" if not isinstance(value, str) else f"{key}='{value}'")
+    if args.size:
+        pre += [f"data.width={args.size[0]}", f"data.height={args.size[1]}"]
+    if args.split:
+        pre.append("data.split=null" if args.split == "all" else f"data.split='{args.split}'")
+    return apply_overrides(cfg, pre + items)
+
+
+@command("train", "train depth and pose networks on panoramic video, without labels", _train_args)
+def _train(args: argparse.Namespace) -> int:
+    from .train.trainer import train
+
+    cfg = train_config_from_args(args)
+    if not cfg.data.root:
+        raise CylsfmError("no training data: pass --data ROOT (or data.root in --config)")
+    summary = train(cfg, args.out, resume=args.resume, progress=not args.no_progress)
+    print(
+        f"trained to step {summary['steps']} ({summary['stopped']}) in {summary['seconds'] / 60:.1f} min; "
+        f"checkpoints in {args.out}/checkpoints"
+    )
+    return 0
+
+
 # ----------------------------------------------------------------------------- demo
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="demo_out", help="output directory (default: demo_out)")

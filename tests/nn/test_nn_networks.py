@@ -217,3 +217,30 @@ def test_set_wrap_equals_constructing_without_wrap() -> None:
     with torch.no_grad():
         for x, y in zip(a(image), b(image), strict=True):
             torch.testing.assert_close(x, y)
+
+
+def test_equivariant_pose_head_rotates_with_a_yaw_roll() -> None:
+    """Rolling all frames by 128 m pixels (a yaw Delta) rotates the equivariant head's output by Delta."""
+    import math
+
+    from cylsfm.geometry import yaw_matrix
+
+    torch.manual_seed(3)
+    net = PoseExpNet(n_sources=2, explainability=False, pose_head="equivariant").eval()
+    with torch.no_grad():  # larger weights make the untrained output clearly non-zero
+        for p in net.parameters():
+            p.mul_(1.7)
+        target, sources = torch.rand(1, 3, 64, 512), torch.rand(1, 2, 3, 64, 512)
+        pose, _ = net(target, sources)
+        assert pose.abs().max() > 1e-4
+        for m in (1, 2, 3):
+            k = 128 * m
+            rolled, _ = net(torch.roll(target, k, -1), torch.roll(sources, k, -1))
+            q = yaw_matrix(torch.tensor(2 * math.pi * k / 512))
+            expected = torch.cat((pose[..., :3] @ q.T, pose[..., 3:] @ q.T), -1)
+            torch.testing.assert_close(rolled, expected, atol=1e-6, rtol=1e-4)
+            # the paper's head, by contrast, does not move at all
+        mean_net = PoseExpNet(n_sources=2, explainability=False, pose_head="mean").eval()
+        p0, _ = mean_net(target, sources)
+        p1, _ = mean_net(torch.roll(target, 128, -1), torch.roll(sources, 128, -1))
+        torch.testing.assert_close(p0, p1)

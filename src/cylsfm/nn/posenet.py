@@ -27,24 +27,40 @@ class PoseExpNet(nn.Module):
     ``T_tgt_to_src`` that maps 3-D points in the target camera frame into source camera ``j`` (camera
     axes: x right, y down, z forward).  Conversion to 4x4 matrices is done in :mod:`cylsfm.geometry`.
 
-    Note that averaging over all positions makes the pose output invariant to a common horizontal
-    roll of all frames (with wrap on), although physically a yaw rotation of the rig should rotate
-    the predicted translation and rotation; this is the behaviour of the original architecture.
+    Pose heads (``pose_head``):
+
+    * ``"mean"`` (the paper's): the 6-vectors predicted at every position are averaged. With wrap on
+      this makes the pose exactly invariant to a common horizontal roll of all frames by a multiple of
+      the encoder's stride (128 px), although physically such a roll is a yaw rotation of the camera
+      that should rotate the predicted translation and rotation with it.
+    * ``"equivariant"``: every column ``j`` of the deepest feature map (azimuth
+      ``theta_j = 2 pi j / W_f - pi``, the azimuth of the input column ``128 j`` of a full panorama
+      with ``cx = W / 2``) predicts translation and rotation in its own azimuthal frame; each is
+      rotated by ``theta_j`` about the vertical axis before the average. Rolling all frames by ``128 m``
+      pixels (a yaw of ``Delta = 2 pi 128 m / W``) then rotates the output exactly: ``t -> Q t``,
+      ``omega -> Q omega`` with ``Q = yaw_matrix(Delta)``, so random yaw-roll augmentation is possible.
+      It is meant for full panoramas.
 
     Args:
         n_sources: number of source frames ``S``.
         explainability: whether to build and run the explainability-mask decoder.
         wrap: horizontal wrap-around (requires widths that are multiples of 128).
+        pose_head: ``"mean"`` or ``"equivariant"`` (see above).
     """
 
     enc_channels = (16, 32, 64, 128, 256, 256, 256)
     enc_kernels = (7, 5, 3, 3, 3, 3, 3)
     dec_channels = (256, 128, 64, 32, 16)
 
-    def __init__(self, n_sources: int = 2, explainability: bool = True, wrap: bool = True) -> None:
+    def __init__(
+        self, n_sources: int = 2, explainability: bool = True, wrap: bool = True, pose_head: str = "mean"
+    ) -> None:
         super().__init__()
         if n_sources < 1:
             raise ValueError(f"n_sources must be >= 1, got {n_sources}")
+        if pose_head not in ("mean", "equivariant"):
+            raise ValueError(f"pose_head must be 'mean' or 'equivariant', got {pose_head!r}")
+        self.pose_head = pose_head
         self.n_sources = n_sources
         self.explainability = explainability
         self.wrap = wrap
@@ -116,7 +132,11 @@ class PoseExpNet(nn.Module):
             x = stage(x)
             feats.append(x)
 
-        pose = 0.01 * self.pose_pred(feats[-1]).mean(dim=(2, 3)).view(b, s, 6)
+        raw = self.pose_pred(feats[-1])  # [B, 6S, H_f, W_f]
+        if self.pose_head == "mean":
+            pose = 0.01 * raw.mean(dim=(2, 3)).view(b, s, 6)
+        else:
+            pose = 0.01 * _rotate_columns_and_average(raw.mean(dim=2).view(b, s, 2, 3, raw.shape[-1]))
 
         if self.upconvs is None or self.mask_heads is None:
             return pose, None
@@ -128,3 +148,17 @@ class PoseExpNet(nn.Module):
             if i >= 1:
                 masks.append(torch.sigmoid(self.mask_heads[i - 1](x)))
         return pose, masks[::-1]
+
+
+def _rotate_columns_and_average(cols: torch.Tensor) -> torch.Tensor:
+    """``[B,S,2,3,W_f]`` per-column (t, omega) in the columns' own azimuthal frames -> ``[B,S,6]``.
+
+    Column ``j`` sits at azimuth ``theta_j = 2 pi j / W_f - pi``; its vectors are rotated by
+    ``yaw_matrix(theta_j)`` (``x' = cos x + sin z``, ``z' = -sin x + cos z``) and averaged over columns.
+    """
+    w = cols.shape[-1]
+    theta = torch.arange(w, device=cols.device, dtype=torch.float32) * (2 * torch.pi / w) - torch.pi
+    c, s_ = torch.cos(theta).to(cols.dtype), torch.sin(theta).to(cols.dtype)
+    x, y, z = cols[..., 0, :], cols[..., 1, :], cols[..., 2, :]
+    rotated = torch.stack((c * x + s_ * z, y, -s_ * x + c * z), -2)  # [B,S,2,3,W_f]
+    return rotated.mean(-1).flatten(2)

@@ -1,0 +1,1 @@
+"""Training: typed configuration and presets, checkpoints, and the training loop."""

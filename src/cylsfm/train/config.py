@@ -1,0 +1,263 @@
+"""Typed training configuration: dataclasses, presets, YAML files and command-line overrides.
+
+A run's resolved configuration is saved as ``RUN/config.yaml`` and inside every checkpoint, so that a
+checkpoint alone rebuilds its networks and knows the image size and projection it was trained on.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..errors import CylsfmError
+from ..losses import LossConfig
+
+__all__ = [
+    "PRESETS",
+    "DataConfig",
+    "ModelConfig",
+    "OptimConfig",
+    "TrainConfig",
+    "apply_overrides",
+    "config_from_dict",
+    "config_to_dict",
+    "load_config",
+    "preset",
+    "save_config",
+]
+
+
+class ConfigError(CylsfmError):
+    """A configuration file or override is invalid."""
+
+
+@dataclass
+class DataConfig:
+    """Which frames are trained on, at what size, and how they are augmented."""
+
+    root: str = ""
+    width: int = 512
+    height: int = 128
+    seq_length: int = 3
+    stride: int = 1
+    split: str | None = "train"  # None: every frame; a name (train/val/test) of a split file, or a path
+    split_name: str = "default"
+    fov: float = 360.0  # horizontal field of view kept (centred crop); < 360 turns wrap-around off
+    mirror: bool = True
+    color_jitter: bool = True
+    roll: bool = False  # random yaw rolls of whole samples; only with the equivariant pose head
+    static_filter: str = "auto"  # auto | poses | image | none
+    min_translation: float = 0.05
+    min_image_diff: float = 0.01
+    mask: str | None = None  # image of pixels to use (white), e.g. the helmet excluded
+    workers: int = 2
+
+
+@dataclass
+class ModelConfig:
+    """The networks: wrap-around, explainability masks and the pose head."""
+
+    wrap: bool = True
+    explainability: bool = False
+    pose_head: str = "mean"  # "mean" (the paper's spatial average) | "equivariant" (yaw-equivariant)
+
+    def __post_init__(self) -> None:
+        if self.pose_head not in ("mean", "equivariant"):
+            raise ConfigError(f"model.pose_head must be 'mean' or 'equivariant', got {self.pose_head!r}")
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 2e-4
+    beta1: float = 0.9
+    beta2: float = 0.999
+    weight_decay: float = 0.0
+
+
+@dataclass
+class TrainConfig:
+    """Everything a run needs; ``preset`` names the preset it started from."""
+
+    preset: str = "default"
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    batch_size: int = 4
+    max_steps: int = 60000
+    minutes: float | None = None  # wall-clock budget; stops (with a checkpoint) when spent
+    seed: int = 0
+    device: str = "auto"  # auto | cpu | cuda | cuda:N
+    amp: bool = True  # mixed precision where it is safe (CUDA); ignored on the CPU
+    channels_last: bool = True
+    log_every: int = 25
+    image_every: int = 500
+    checkpoint_every: int = 2000  # also kept as step_NNNNNNN.pt
+    latest_every: int = 200  # latest.pt, overwritten atomically
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1:
+            raise ConfigError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.max_steps < 0:
+            raise ConfigError(f"max_steps must be >= 0, got {self.max_steps}")
+        if self.data.seq_length < 2:
+            raise ConfigError(f"data.seq_length must be >= 2, got {self.data.seq_length}")
+        if not 0 < self.data.fov <= 360:
+            raise ConfigError(f"data.fov must be in (0, 360], got {self.data.fov}")
+        if self.data.roll and self.model.pose_head != "equivariant":
+            raise ConfigError(
+                "data.roll (random yaw rolls) needs model.pose_head=equivariant: the paper's averaged pose "
+                "head is invariant to rolls and cannot learn ego-motion from rolled samples"
+            )
+        if self.data.roll and self.data.fov < 360:
+            raise ConfigError("data.roll needs full 360-degree panoramas (data.fov = 360)")
+
+    @property
+    def wrap(self) -> bool:
+        """Wrap-around is used only on full panoramas."""
+        return self.model.wrap and self.data.fov >= 360
+
+
+# ----------------------------------------------------------------------------- presets
+def _improved() -> TrainConfig:
+    cfg = TrainConfig(preset="improved")
+    cfg.loss = LossConfig(
+        smooth_weight=0.0,
+        image_smooth_weight=1e-3,
+        image_smooth_order=1,
+        smooth_mean_normalize=True,
+        ssim_weight=0.85,
+        min_reprojection=True,
+        automask=True,
+        full_resolution=True,
+    )
+    return cfg
+
+
+def _paper_synthia() -> TrainConfig:
+    cfg = TrainConfig(preset="paper-synthia")
+    cfg.loss = LossConfig(smooth_weight=2.0, explain_weight=0.0)
+    cfg.model = ModelConfig(explainability=False)
+    cfg.max_steps = 60000
+    return cfg
+
+
+def _paper_headcam() -> TrainConfig:
+    cfg = TrainConfig(preset="paper-headcam")
+    cfg.loss = LossConfig(smooth_weight=0.0, image_smooth_weight=0.2, image_smooth_order=1)
+    cfg.model = ModelConfig(explainability=False)
+    cfg.max_steps = 60000
+    return cfg
+
+
+PRESETS = {
+    "default": _improved,
+    "improved": _improved,
+    "paper-synthia": _paper_synthia,
+    "paper-headcam": _paper_headcam,
+}
+
+
+def preset(name: str) -> TrainConfig:
+    """A fresh configuration of the preset ``name`` (see :data:`PRESETS`)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r} (choose from {', '.join(PRESETS)})")
+    return PRESETS[name]()
+
+
+# ----------------------------------------------------------------------------- (de)serialisation
+def config_to_dict(cfg: TrainConfig) -> dict[str, Any]:
+    """Plain nested dict (YAML- and checkpoint-safe types only)."""
+    return asdict(cfg)
+
+
+def _build(cls: type, data: Any, where: str) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(known)})")
+    kwargs = {}
+    for name, value in data.items():
+        sub = _NESTED.get((cls, name))
+        kwargs[name] = _build(sub, value, f"{where}.{name}") if sub else value
+    try:
+        return cls(**kwargs)
+    except CylsfmError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+_NESTED = {
+    (TrainConfig, "data"): DataConfig,
+    (TrainConfig, "model"): ModelConfig,
+    (TrainConfig, "loss"): LossConfig,
+    (TrainConfig, "optim"): OptimConfig,
+}
+
+
+def config_from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
+    """Rebuild a :class:`TrainConfig`; unknown keys and invalid values are errors naming ``where``."""
+    base = preset(data.get("preset", "default")) if isinstance(data, dict) else TrainConfig()
+    merged = _merge(config_to_dict(base), data, where)
+    return _build(TrainConfig, merged, where)
+
+
+def _merge(base: dict, update: Any, where: str) -> dict:
+    if not isinstance(update, dict):
+        raise ConfigError(f"{where}: expected a mapping, got {type(update).__name__}")
+    out = dict(base)
+    for k, v in update.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v, f"{where}.{k}")
+        else:
+            out[k] = v
+    return out
+
+
+def load_config(path: str | os.PathLike[str]) -> TrainConfig:
+    """Read a YAML configuration (a preset name plus any fields to change)."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: configuration file not found") from None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read the configuration ({exc})") from None
+    return config_from_dict(data or {}, where=str(path))
+
+
+def save_config(cfg: TrainConfig, path: str | os.PathLike[str]) -> None:
+    """Write the resolved configuration as YAML, atomically."""
+    from ..data.format import atomic_write_bytes
+
+    text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False)
+    atomic_write_bytes(Path(path), text.encode())
+
+
+def apply_overrides(cfg: TrainConfig, overrides: list[str]) -> TrainConfig:
+    """Apply ``key.sub=value`` overrides (values parsed as YAML scalars), returning a new config."""
+    data = config_to_dict(cfg)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} is not of the form key=value (e.g. loss.ssim_weight=0.85)")
+        key, raw = item.split("=", 1)
+        node = data
+        parts = key.strip().split(".")
+        for p in parts[:-1]:
+            if not isinstance(node.get(p), dict):
+                raise ConfigError(f"override {item!r}: {p!r} is not a section of the configuration")
+            node = node[p]
+        if parts[-1] not in node:
+            raise ConfigError(f"override {item!r}: unknown key {key!r}")
+        try:
+            node[parts[-1]] = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"override {item!r}: cannot parse the value ({exc})") from None
+    return _build(TrainConfig, data, "overrides")

@@ -1,0 +1,464 @@
+"""The training loop: view synthesis with DispNet and PoseExpNet, on one device or data-parallel.
+
+Plain PyTorch, readable top to bottom (in the spirit of monodepth2): build the data, the networks and the
+optimiser, then repeat ``step()``. Every loss term is logged to TensorBoard (``RUN/tb``) and to
+``RUN/metrics.jsonl``; images (target, warped sources, photometric error, explainability, disparity)
+every ``image_every`` steps. Checkpoints are written atomically (``RUN/checkpoints/latest.pt`` and every
+``checkpoint_every`` steps ``step_NNNNNNN.pt``); ``resume`` continues exactly: networks, optimiser, AMP
+scaler, step, random states and the data order.
+
+Data parallel: start one process per device with ``torchrun --nproc_per_node N -m cylsfm.cli train ...``
+(or several nodes); each process takes its shard of every epoch, gradients are averaged by
+``DistributedDataParallel`` (NCCL on GPUs, gloo on CPUs), and rank 0 logs and writes checkpoints.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ..data.dataset import AugmentConfig, SequenceDataset, StaticFilter, camera_of
+from ..data.format import load_mask
+from ..errors import CylsfmError
+from ..geometry import Camera, pose_vec_to_mat
+from ..inference import pick_device
+from ..losses import image_pyramid, view_synthesis_loss
+from .checkpoint import build_models, load_checkpoint, save_checkpoint
+from .config import TrainConfig, config_from_dict, config_to_dict, save_config
+from .sampler import ResumableSampler, SeededDataset
+
+__all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "train"]
+
+
+class NonFiniteLossError(CylsfmError):
+    """The loss became NaN or infinite; the last good checkpoint is kept."""
+
+
+class SfMNet(nn.Module):
+    """Both networks in one module (one DistributedDataParallel wrapper, one optimiser)."""
+
+    def __init__(self, disp_net: nn.Module, pose_net: nn.Module) -> None:
+        super().__init__()
+        self.disp_net = disp_net
+        self.pose_net = pose_net
+
+    def forward(self, target: Tensor, sources: Tensor) -> tuple[list[Tensor], Tensor, list[Tensor] | None]:
+        disps = self.disp_net(target)
+        pose_vec, masks = self.pose_net(target, sources)
+        return disps, pose_vec, masks
+
+
+@dataclass
+class _Dist:
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def _init_distributed(device_name: str) -> tuple[_Dist, torch.device]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return _Dist(), pick_device(device_name)
+    rank = int(os.environ["RANK"])
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    use_cuda = (torch.cuda.is_available() and device_name in ("auto", "cuda")) or device_name.startswith(
+        "cuda"
+    )
+    if use_cuda:
+        torch.cuda.set_device(local)
+        device = torch.device("cuda", local)
+    else:
+        device = torch.device("cpu")
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if use_cuda else "gloo")
+    return _Dist(rank, world, local), device
+
+
+class Trainer:
+    """Trains the networks of ``cfg`` into ``run_dir`` (see the module docstring)."""
+
+    def __init__(self, cfg: TrainConfig, run_dir: str | os.PathLike[str], resume: bool = False) -> None:
+        self.run_dir = Path(run_dir)
+        self.dist, self.device = _init_distributed(cfg.device)
+        state = None
+        if resume:
+            ckpt = self.run_dir / "checkpoints" / "latest.pt"
+            if not ckpt.exists():
+                raise CylsfmError(f"{ckpt}: nothing to resume (no checkpoint in {self.run_dir})")
+            state = load_checkpoint(ckpt, map_location="cpu")
+            saved = config_from_dict(state["config"], where=f"{ckpt} (config)")
+            # A resumed run keeps its configuration; only the budget and the hardware may change.
+            saved.max_steps, saved.minutes = cfg.max_steps, cfg.minutes
+            saved.device, saved.data.workers = cfg.device, cfg.data.workers
+            cfg = saved
+        self.cfg = cfg
+        self.step = 0
+        self._check_size()
+        self._seed_everything(cfg.seed + self.dist.rank)
+
+        # ---- data
+        self.dataset = SequenceDataset(
+            cfg.data.root,
+            seq_length=cfg.data.seq_length,
+            stride=cfg.data.stride,
+            split=cfg.data.split,
+            split_name=cfg.data.split_name,
+            size=(cfg.data.width, cfg.data.height),
+            augment=AugmentConfig(
+                mirror=cfg.data.mirror, color_jitter=cfg.data.color_jitter, roll=cfg.data.roll
+            ),
+            static=StaticFilter(cfg.data.static_filter, cfg.data.min_translation, cfg.data.min_image_diff),
+        )
+        if len(self.dataset) < cfg.batch_size * self.dist.world:
+            raise CylsfmError(
+                f"{cfg.data.root}: only {len(self.dataset)} training samples for batch size {cfg.batch_size}"
+                f" x {self.dist.world} process(es)"
+            )
+        self.static_mask = self._load_static_mask()
+
+        # ---- networks and optimiser
+        disp_net, pose_net = build_models(cfg)
+        self.model = SfMNet(disp_net, pose_net).to(self.device)
+        if cfg.channels_last:
+            self.model = self.model.to(memory_format=torch.channels_last)
+        fused = self.device.type in ("cuda", "cpu")
+        self.optimizer = torch.optim.Adam(
+            self.model.parameters(),
+            lr=cfg.optim.lr,
+            betas=(cfg.optim.beta1, cfg.optim.beta2),
+            weight_decay=cfg.optim.weight_decay,
+            fused=fused,
+        )
+        self.amp_dtype = None
+        if cfg.amp and self.device.type == "cuda":
+            self.amp_dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype == torch.float16)
+        if state is not None:
+            self._restore(state)
+        self.net: nn.Module = self.model
+        if self.dist.world > 1:
+            ids = [self.device.index] if self.device.type == "cuda" else None
+            self.net = nn.parallel.DistributedDataParallel(self.model, device_ids=ids)
+
+        # ---- outputs
+        self.writer = None
+        if self.dist.main:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            save_config(cfg, self.run_dir / "config.yaml")
+
+    # ------------------------------------------------------------------ set-up helpers
+    def _check_size(self) -> None:
+        from ..geometry import CylindricalCamera
+        from ..nn.dispnet import check_input_size
+
+        w, h = self.cfg.data.width, self.cfg.data.height
+        if self.cfg.data.fov < 360:
+            w = CylindricalCamera.full(w, h).crop(self.cfg.data.fov).width
+        try:
+            check_input_size(w, h, self.cfg.wrap)
+        except ValueError as exc:
+            raise CylsfmError(
+                f"training size {self.cfg.data.width}x{h} (network input {w}x{h}): {exc}"
+            ) from None
+
+    @staticmethod
+    def _seed_everything(seed: int) -> None:
+        random.seed(seed)
+        np.random.seed(seed % 2**32)  # noqa: NPY002 - third-party code may draw from the global state
+        torch.manual_seed(seed)
+
+    def _load_static_mask(self) -> Tensor | None:
+        if not self.cfg.data.mask:
+            return None
+        m = torch.from_numpy(load_mask(self.cfg.data.mask))[None, None]
+        m = F.interpolate(m, size=(self.cfg.data.height, self.cfg.data.width), mode="area")
+        return m.to(self.device)
+
+    def _loader(self) -> torch.utils.data.DataLoader:
+        consumed = self.step * self.cfg.batch_size
+        sampler = ResumableSampler(
+            len(self.dataset), seed=self.cfg.seed, rank=self.dist.rank, world=self.dist.world, start=consumed
+        )
+        workers = self.cfg.data.workers
+        return torch.utils.data.DataLoader(
+            SeededDataset(self.dataset),
+            batch_size=self.cfg.batch_size,
+            sampler=sampler,
+            num_workers=workers,
+            pin_memory=self.device.type == "cuda",
+            drop_last=True,
+            persistent_workers=workers > 0,
+            prefetch_factor=4 if workers > 0 else None,
+        )
+
+    # ------------------------------------------------------------------ one step
+    def _crop(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Camera, Tensor | None]:
+        """Images on the device (cropped to the field of view), their camera and the static mask."""
+        tgt = batch["target"].to(self.device, non_blocking=True)
+        src = batch["sources"].to(self.device, non_blocking=True)
+        cam = camera_of(batch)
+        mask = self.static_mask
+        if "mask" in batch:
+            m = batch["mask"].to(self.device)
+            mask = m if mask is None else mask * m
+        if self.cfg.data.fov < 360:
+            x0, x1 = cam.index(0).crop_window(self.cfg.data.fov)
+            cam = cam.crop(self.cfg.data.fov)
+            tgt, src = tgt[..., x0:x1], src[..., x0:x1]
+            mask = mask[..., x0:x1] if mask is not None else None
+        if self.cfg.channels_last:
+            tgt = tgt.contiguous(memory_format=torch.channels_last)
+        return tgt, src, cam, mask
+
+    def compute_loss(self, batch: dict[str, Any]) -> tuple[Tensor, dict[str, Tensor], dict[str, Tensor]]:
+        tgt, src, cam, mask = self._crop(batch)
+        with torch.autocast(
+            self.device.type, dtype=self.amp_dtype or torch.float32, enabled=self.amp_dtype is not None
+        ):
+            disps, pose_vec, masks = self.net(tgt, src)
+        disps = [d.float() for d in disps]
+        masks = [m.float() for m in masks] if masks is not None and self.cfg.loss.explain_weight > 0 else None
+        poses = pose_vec_to_mat(pose_vec.float())
+        sizes = [tuple(d.shape[-2:]) for d in disps]
+        photo_sizes = [tuple(tgt.shape[-2:])] * len(sizes) if self.cfg.loss.full_resolution else sizes
+        tgt32 = tgt.float().contiguous()
+        out = view_synthesis_loss(
+            tgt32,
+            src.float(),
+            disps,
+            poses,
+            cam,
+            self.cfg.loss,
+            explainability=masks,
+            static_mask=mask,
+            wrap=self.cfg.wrap,
+            target_pyramid=image_pyramid(tgt32, sizes),
+            source_pyramid=image_pyramid(src.float(), photo_sizes),
+        )
+        visuals = {
+            "target": tgt32[:1].detach(),
+            "warped": out.warped[:1] if out.warped is not None else None,
+            "error": out.error[:1] if out.error is not None else None,
+            "disparity": disps[0][:1].detach(),
+            "explainability": masks[0][:1].detach() if masks is not None else None,
+            "translation_norm": poses[:, :, :3, 3].norm(dim=-1).mean().detach(),
+        }
+        return out.total, out.terms, visuals
+
+    def train_step(self, batch: dict[str, Any]) -> tuple[dict[str, float], dict[str, Tensor]]:
+        self.net.train()
+        total, terms, visuals = self.compute_loss(batch)
+        if not torch.isfinite(total):
+            raise NonFiniteLossError(
+                f"non-finite loss at step {self.step + 1} "
+                f"({', '.join(f'{k}={float(v.detach()):.4g}' for k, v in terms.items())}); the last good checkpoint "
+                f"is kept in {self.run_dir / 'checkpoints'}"
+            )
+        self.optimizer.zero_grad(set_to_none=True)
+        self.scaler.scale(total).backward()
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        self.step += 1
+        scalars = {k: float(v.detach()) for k, v in terms.items()}
+        scalars["translation_norm"] = float(visuals.pop("translation_norm"))
+        return scalars, visuals
+
+    # ------------------------------------------------------------------ checkpoints
+    def state(self) -> dict[str, Any]:
+        rng = {
+            "torch": torch.get_rng_state(),
+            "numpy": _numpy_state_to_list(np.random.get_state()),  # noqa: NPY002
+            "python": _python_state_to_list(random.getstate()),
+        }
+        if torch.cuda.is_available():
+            rng["cuda"] = torch.cuda.get_rng_state_all()
+        return {
+            "config": config_to_dict(self.cfg),
+            "step": self.step,
+            "disp_net": self.model.disp_net.state_dict(),
+            "pose_net": self.model.pose_net.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scaler": self.scaler.state_dict(),
+            "rng": rng,
+            "sampler": {"consumed": self.step * self.cfg.batch_size, "seed": self.cfg.seed},
+        }
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        self.model.disp_net.load_state_dict(state["disp_net"])
+        self.model.pose_net.load_state_dict(state["pose_net"])
+        if "optimizer" in state:
+            self.optimizer.load_state_dict(state["optimizer"])
+        if state.get("scaler"):
+            self.scaler.load_state_dict(state["scaler"])
+        self.step = int(state["step"])
+        rng = state.get("rng") or {}
+        if "torch" in rng:
+            torch.set_rng_state(rng["torch"])
+        if "numpy" in rng:
+            np.random.set_state(_numpy_state_from_list(rng["numpy"]))  # noqa: NPY002
+        if "python" in rng:
+            random.setstate(_python_state_from_list(rng["python"]))
+        if "cuda" in rng and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(rng["cuda"])
+
+    def save(self, keep: bool = False) -> None:
+        if not self.dist.main:
+            return
+        state = self.state()
+        save_checkpoint(self.run_dir / "checkpoints" / "latest.pt", state)
+        if keep:
+            save_checkpoint(self.run_dir / "checkpoints" / f"step_{self.step:07d}.pt", state)
+
+    # ------------------------------------------------------------------ logging
+    def _log(self, scalars: dict[str, float], visuals: dict[str, Tensor], rate: float) -> None:
+        if not self.dist.main:
+            return
+        if self.writer is None:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self.writer = SummaryWriter(str(self.run_dir / "tb"))
+            except ImportError:  # pragma: no cover - tensorboard is a dependency
+                self.writer = False
+        row = {"step": self.step, "time": time.time(), "samples_per_s": rate, **scalars}
+        with open(self.run_dir / "metrics.jsonl", "a") as fh:
+            fh.write(json.dumps(row) + "\n")
+        if self.writer:
+            for k, v in scalars.items():
+                self.writer.add_scalar(
+                    f"loss/{k}" if k in ("photometric", "smooth", "explain", "total") else k, v, self.step
+                )
+            self.writer.add_scalar("samples_per_s", rate, self.step)
+
+    def _log_images(self, visuals: dict[str, Tensor]) -> None:
+        if not (self.dist.main and self.writer):
+            return
+        w = self.writer
+        w.add_image("target", visuals["target"][0].clamp(0, 1), self.step)
+        if visuals.get("warped") is not None:
+            for k in range(visuals["warped"].shape[1]):
+                w.add_image(f"warped/source_{k}", visuals["warped"][0, k].clamp(0, 1), self.step)
+        if visuals.get("error") is not None:
+            e = visuals["error"][0]
+            w.add_image("photometric_error", (e / e.max().clamp(min=1e-6)), self.step)
+        d = visuals["disparity"][0]
+        w.add_image("disparity", (d - d.min()) / (d.max() - d.min()).clamp(min=1e-6), self.step)
+        if visuals.get("explainability") is not None:
+            for k in range(visuals["explainability"].shape[1]):
+                w.add_image(f"explainability/source_{k}", visuals["explainability"][0, k : k + 1], self.step)
+
+    # ------------------------------------------------------------------ the loop
+    def fit(self, progress: bool = True) -> dict[str, Any]:
+        """Train until ``max_steps`` or the ``minutes`` budget; returns a summary."""
+        cfg = self.cfg
+        start_step, t0 = self.step, time.monotonic()
+        deadline = t0 + cfg.minutes * 60 if cfg.minutes else math.inf
+        bar = None
+        if progress and self.dist.main:
+            from tqdm import tqdm
+
+            bar = tqdm(
+                total=cfg.max_steps, initial=self.step, unit="step", dynamic_ncols=True, file=sys.stderr
+            )
+        last_log, samples_since = time.monotonic(), 0
+        stopped = "max_steps"
+        loader = self._loader()
+        try:
+            for batch in loader:
+                if self.step >= cfg.max_steps:
+                    break
+                if time.monotonic() >= deadline:
+                    stopped = "minutes"
+                    break
+                scalars, visuals = self.train_step(batch)
+                samples_since += cfg.batch_size * self.dist.world
+                if self.step % cfg.log_every == 0 or self.step == 1:
+                    now = time.monotonic()
+                    self._log(scalars, visuals, samples_since / max(now - last_log, 1e-9))
+                    last_log, samples_since = now, 0
+                if cfg.image_every and self.step % cfg.image_every == 0:
+                    self._log_images(visuals)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{scalars['total']:.4f}", refresh=False)
+                keep = cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0
+                if keep or (cfg.latest_every and self.step % cfg.latest_every == 0):
+                    self.save(keep=bool(keep))
+        except KeyboardInterrupt:
+            stopped = "interrupted"
+            warnings.warn(f"interrupted at step {self.step}; saving a checkpoint", stacklevel=1)
+        finally:
+            if bar is not None:
+                bar.close()
+        if stopped != "max_steps" or self.step > start_step:
+            self.save(keep=False)
+        if self.writer:
+            self.writer.flush()
+        return {
+            "steps": self.step,
+            "stopped": stopped,
+            "seconds": time.monotonic() - t0,
+            "run_dir": str(self.run_dir),
+        }
+
+    def close(self) -> None:
+        if self.writer:
+            self.writer.close()
+        if self.dist.world > 1 and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def train(
+    cfg: TrainConfig, run_dir: str | os.PathLike[str], resume: bool = False, progress: bool = True
+) -> dict:
+    """Build a :class:`Trainer` and run it (closing TensorBoard and the process group afterwards)."""
+    trainer = Trainer(cfg, run_dir, resume=resume)
+    try:
+        return trainer.fit(progress=progress)
+    finally:
+        trainer.close()
+
+
+# ----------------------------------------------------------------------------- RNG states as plain data
+def _numpy_state_to_list(state: tuple) -> list:
+    name, keys, pos, has_gauss, cached = state
+    return [name, torch.from_numpy(np.asarray(keys, dtype=np.int64)), int(pos), int(has_gauss), float(cached)]
+
+
+def _numpy_state_from_list(data: list) -> tuple:
+    name, keys, pos, has_gauss, cached = data
+    return (
+        name,
+        np.asarray(keys.numpy() if isinstance(keys, Tensor) else keys, dtype=np.uint32),
+        pos,
+        has_gauss,
+        cached,
+    )
+
+
+def _python_state_to_list(state: tuple) -> list:
+    version, internal, gauss = state
+    return [version, list(internal), gauss]
+
+
+def _python_state_from_list(data: list) -> tuple:
+    version, internal, gauss = data
+    return (version, tuple(internal), gauss)

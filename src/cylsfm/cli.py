@@ -232,6 +232,174 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------- predict
+def _predict_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="image files, folders of images, videos")
+    p.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
+    p.add_argument("--out", required=True, help="output directory: OUT/NAME/FRAME.npy|png, OUT/NAME.mp4")
+    p.add_argument(
+        "--camera",
+        help="camera.json of the inputs (cylindrical, equirectangular or pinhole); without it inputs must be "
+        "full 360-degree cylindrical panoramas of the model's aspect ratio",
+    )
+    p.add_argument("--batch-size", type=int, default=8, help="frames per network call (default 8)")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.add_argument("--no-png", action="store_true", help="do not write coloured depth pictures")
+    p.add_argument("--fps", type=float, help="take about N frames a second from videos (default: all)")
+
+
+@command("predict", "depth maps for panoramic images, folders and videos with a trained model", _predict_args)
+def _predict(args: argparse.Namespace) -> int:
+    from .predict import predict
+
+    summary = predict(
+        args.checkpoint,
+        args.inputs,
+        args.out,
+        camera=args.camera,
+        batch_size=args.batch_size,
+        device=args.device,
+        png=not args.no_png,
+        fps=args.fps,
+    )
+    videos = f" and {len(summary.videos)} preview video(s)" if summary.videos else ""
+    print(f"wrote {summary.total} depth maps of {len(summary.frames)} input(s){videos} to {args.out}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- evaluate
+def _evaluate_args(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="action", required=True, metavar="{depth,pose}")
+    depth = sub.add_parser(
+        "depth",
+        help="depth errors (Eigen et al., median scaling) against ground truth, with baselines",
+        description="Depth errors (Eigen et al., median scaling) of a model or of another method's "
+        "predictions against a dataset's ground truth, next to the constant and per-row baselines.",
+    )
+    src = depth.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint", help="checkpoint file or run directory")
+    src.add_argument(
+        "--predictions",
+        help="directory of depth maps PRED/SEQ/FRAME.npy (or PRED/SEQ/depth/FRAME.npy), any resolution",
+    )
+    pose = sub.add_parser(
+        "pose",
+        help="snippet ATE and full-trajectory APE/RPE (evo) against ground-truth poses, with baselines",
+        description="Ego-motion: SfMLearner's snippet ATE and full-trajectory APE/RPE (Sim(3)-aligned, with "
+        "evo) of a model or of another method's TUM trajectories, next to the zero-motion and "
+        "constant-velocity baselines.",
+    )
+    src = pose.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint", help="checkpoint file or run directory")
+    src.add_argument(
+        "--trajectory",
+        help="TUM trajectories (camera-to-world) of another method: a directory with SEQ.txt per sequence, "
+        "or one file for a single sequence",
+    )
+    for q in (depth, pose):
+        q.add_argument("--data", required=True, help="dataset root (format v1) with ground truth")
+        q.add_argument(
+            "--split", default="test", help="test | val | train | a split file | all (default: test)"
+        )
+        q.add_argument("--split-name", default="default", help="split directory under ROOT/splits")
+        q.add_argument("--json", help="write the results to this JSON file")
+        q.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+        q.add_argument("--batch-size", type=int, default=8, help="images per network call (default 8)")
+        q.add_argument("--no-progress", action="store_true", help="no progress bars")
+    depth.add_argument(
+        "--prior-split",
+        default="train",
+        help="frames of the per-row prior (default: train; 'all': every frame)",
+    )
+    depth.add_argument("--min-depth", type=float, default=1e-3, help="valid ground truth above (m)")
+    depth.add_argument("--max-depth", type=float, default=80.0, help="valid ground truth below (m)")
+    depth.add_argument(
+        "--no-median-scaling", action="store_true", help="score the model's depth as it is (metric methods)"
+    )
+    pose.add_argument("--snippet", type=int, default=5, help="frames per ATE snippet (default 5)")
+    pose.add_argument("--stride", type=int, help="frame step (default: the model's; 1 for --trajectory)")
+    pose.add_argument("--out", help="directory for the model's TUM trajectories and top-view plots")
+
+
+def _json_safe(value):
+    """NaN and infinities -> None, recursively (strict JSON)."""
+    import math
+
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+@command(
+    "evaluate", "score depth or ego-motion against ground truth, next to simple baselines", _evaluate_args
+)
+def _evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from .data.format import atomic_write_bytes
+
+    if args.batch_size < 1:
+        raise CylsfmError(f"--batch-size must be at least 1, got {args.batch_size}")
+    split = None if args.split == "all" else args.split
+    progress = None if not args.no_progress else False
+    if args.checkpoint:
+        from .inference import Predictor
+
+        source = Predictor.from_checkpoint(args.checkpoint, args.device)
+    if args.action == "depth":
+        from .evaluate.depth import depth_json, evaluate_depth, format_depth_table
+
+        if not 0 < args.min_depth < args.max_depth:
+            raise CylsfmError(
+                f"need 0 < --min-depth < --max-depth, got {args.min_depth} and {args.max_depth}"
+            )
+        result = evaluate_depth(
+            source if args.checkpoint else args.predictions,
+            args.data,
+            split=split,
+            split_name=args.split_name,
+            prior_split=None if args.prior_split == "all" else args.prior_split,
+            min_depth=args.min_depth,
+            max_depth=args.max_depth,
+            median_scaling=not args.no_median_scaling,
+            batch_size=args.batch_size,
+            progress=progress,
+        )
+        print(format_depth_table(result))
+        report = depth_json(result)
+    else:
+        from .evaluate.pose import evaluate_pose, format_pose_table, pose_json
+
+        if args.snippet < 2:
+            raise CylsfmError(f"--snippet must be at least 2, got {args.snippet}")
+        if args.stride is not None and args.stride < 1:
+            raise CylsfmError(f"--stride must be at least 1, got {args.stride}")
+        result = evaluate_pose(
+            source if args.checkpoint else args.trajectory,
+            args.data,
+            split=split,
+            split_name=args.split_name,
+            snippet=args.snippet,
+            stride=args.stride,
+            out=args.out,
+            batch_size=args.batch_size,
+            progress=progress,
+        )
+        print(format_pose_table(result))
+        if args.out:
+            print(f"trajectories and plots in {args.out}")
+        report = pose_json(result)
+    if args.json:
+        text = json.dumps(_json_safe(report), indent=2, allow_nan=False) + "\n"
+        atomic_write_bytes(args.json, text.encode())
+        print(f"wrote {args.json}")
+    return 0
+
+
 # ----------------------------------------------------------------------------- demo
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="demo_out", help="output directory (default: demo_out)")

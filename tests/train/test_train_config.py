@@ -21,7 +21,9 @@ def test_paper_presets_match_the_paper():
 
 
 def test_yaml_round_trip_and_overrides(tmp_path):
-    cfg = apply_overrides(preset("paper-synthia"), ["loss.ssim_weight=0.85", "data.width=256", "model.wrap=false"])
+    cfg = apply_overrides(
+        preset("paper-synthia"), ["loss.ssim_weight=0.85", "data.width=256", "model.wrap=false"]
+    )
     assert cfg.loss.ssim_weight == 0.85 and cfg.data.width == 256 and cfg.wrap is False
     save_config(cfg, tmp_path / "c.yaml")
     assert load_config(tmp_path / "c.yaml") == cfg

@@ -83,6 +83,7 @@ def test_checkpoints_are_untrusted_input(tmp_path):
     save_checkpoint(tmp_path / "partial.pt", {"step": 1})
     with pytest.raises(CheckpointError, match="missing"):
         load_checkpoint(tmp_path / "partial.pt")
+
     # a pickle that would run code is refused by weights_only loading
     class Evil:
         def __reduce__(self):
@@ -96,7 +97,17 @@ def test_checkpoints_are_untrusted_input(tmp_path):
 
 
 def test_cli_train_and_bad_size(tiny_data, tmp_path, capsys):
-    args = ["train", "--data", str(tiny_data), "--out", str(tmp_path / "r"), "--size", "128x32", "--split", "all"]
+    args = [
+        "train",
+        "--data",
+        str(tiny_data),
+        "--out",
+        str(tmp_path / "r"),
+        "--size",
+        "128x32",
+        "--split",
+        "all",
+    ]
     assert main([*args, "--max-steps", "2", "--workers", "0", "--no-progress", "batch_size=2"]) == 0
     assert main(["train", "--data", str(tiny_data), "--out", str(tmp_path / "r2"), "--size", "120x32"]) == 2
     assert "multiple of 128" in capsys.readouterr().err
@@ -104,7 +115,11 @@ def test_cli_train_and_bad_size(tiny_data, tmp_path, capsys):
 
 
 def test_fov_crop_and_equivariant_head_train(tiny_data, tmp_path):
-    run = train(_cfg(tiny_data, max_steps=1, **{"data.fov": 180, "data.width": 256}), tmp_path / "crop", progress=False)
+    run = train(
+        _cfg(tiny_data, max_steps=1, **{"data.fov": 180, "data.width": 256}),
+        tmp_path / "crop",
+        progress=False,
+    )
     assert run["steps"] == 1
     assert load_models(tmp_path / "crop").config.wrap is False
     eq = _cfg(tiny_data, max_steps=1, **{"model.pose_head": "equivariant", "data.roll": "true"})

@@ -55,6 +55,7 @@ class DataConfig:
     min_image_diff: float = 0.01
     mask: str | None = None  # image of pixels to use (white), e.g. the helmet excluded
     workers: int = 2
+    vfov_h: float | None = None  # recorded when training starts: rows span h in [-vfov_h, vfov_h]
 
 
 @dataclass

@@ -133,6 +133,10 @@ class Trainer:
                 f" x {self.dist.world} process(es)"
             )
         self.static_mask = self._load_static_mask()
+        if cfg.data.vfov_h is None:  # what the network will expect of panoramas given to it later
+            cam = camera_of(self.dataset[0])
+            if cam.model == "cylindrical":
+                cfg.data.vfov_h = round((float(cam.cy) + 0.5) / float(cam.fy), 6)
 
         # ---- networks and optimiser
         disp_net, pose_net = build_models(cfg)

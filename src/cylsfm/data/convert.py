@@ -1,0 +1,152 @@
+"""Resampling panoramas and photographs into a cylindrical camera.
+
+:func:`to_cylinder` turns an equirectangular 360-degree image (the usual output of 360 cameras), a
+cylindrical panorama of another size or vertical field of view, or a pinhole photograph into the
+cylindrical panorama of a given :class:`~cylsfm.geometry.CylindricalCamera`: every destination pixel's ray
+(``dst_camera.rays``) is projected into the source (``src_camera.project``) and the source is sampled there
+bilinearly (:func:`~cylsfm.geometry.sample_image`, wrapping around the seam of a full source panorama).
+
+Anti-aliasing: bilinear sampling alone aliases when the source has many pixels per destination pixel
+(a 5760x2880 equirectangular frame into a 512x128 cylinder has about 11 source pixels per destination pixel).
+:func:`to_cylinder` therefore
+
+1. samples an integer supersampling of the destination, ``sx x sy`` samples a pixel (the destination camera
+   :meth:`~cylsfm.geometry.Camera.resized` to ``(sx W, sy H)``), and averages each block (area average),
+   which is exactly the destination's pixel grid;
+2. when even that is too sparse (more than ``2 * max_supersample`` source pixels per destination pixel),
+   first area-averages the source by an integer factor ``kx x ky``,
+
+so that neighbouring samples lie 1 to 2 (pre-averaged) source pixels apart. The factors come from the ratio
+of the focal lengths at the optical centre (``src.fx / dst.fx``, ``src.fy / dst.fy``, pixels per radian
+there); away from the centre the true ratio differs (an equirectangular row spans less height near the
+top of a cylinder; a pinhole view is denser at its edges), which the 1-2 pixel margin absorbs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..geometry import Camera, CylindricalCamera, sample_image
+
+__all__ = ["plan_resampling", "to_cylinder"]
+
+
+def _max_float(p: float | Tensor) -> float:
+    return float(p.max()) if isinstance(p, Tensor) else float(p)
+
+
+def plan_resampling(
+    src_camera: Camera, dst_camera: Camera, max_supersample: int = 4
+) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The anti-aliasing factors :func:`to_cylinder` uses: ``((sx, sy), (kx, ky))``.
+
+    ``r = src.f / dst.f`` is the number of source pixels per destination pixel along an axis (at the
+    optical centre). The destination is supersampled ``s = clamp(ceil(r), 1, max_supersample)`` times and
+    the source area-averaged ``k = max(1, floor(r / s))`` times, so that samples are ``r / (s k)`` in
+    ``[1, 2)`` averaged source pixels apart (when ``r >= 1``; upsampling uses ``s = k = 1``).
+    """
+    if max_supersample < 1:
+        raise ValueError(f"max_supersample must be >= 1, got {max_supersample}")
+    out_s, out_k = [], []
+    for name in ("fx", "fy"):
+        r = _max_float(getattr(src_camera, name)) / _max_float(getattr(dst_camera, name))
+        s = min(max_supersample, max(1, math.ceil(r - 1e-6)))
+        k = max(1, math.floor(r / s + 1e-6))
+        out_s.append(s)
+        out_k.append(k)
+    return (out_s[0], out_s[1]), (out_k[0], out_k[1])
+
+
+def to_cylinder(
+    image: Tensor,
+    src_camera: Camera,
+    dst_camera: CylindricalCamera,
+    wrap: bool | None = None,
+    *,
+    supersample: int | tuple[int, int] | None = None,
+    max_supersample: int = 4,
+    return_mask: bool = False,
+) -> Tensor | tuple[Tensor, Tensor]:
+    """Resample ``image`` seen by ``src_camera`` into the cylindrical panorama of ``dst_camera``.
+
+    Both cameras share their centre and axes (x right, y down, z forward): a destination pixel looking
+    along ray ``r`` takes the source's colour at ``src_camera.project(r)``.
+
+    Args:
+        image: ``[B,C,H,W]`` float source images (any range; colours are averaged linearly) whose size is
+            ``src_camera``'s. Integer images are converted to float32.
+        src_camera: the source's camera (equirectangular, cylindrical or pinhole; scalar or ``[B]``
+            intrinsics).
+        dst_camera: the cylindrical camera of the result, size ``W' x H'``.
+        wrap: sample across the source's left/right seam; ``None``: when the source covers a full turn
+            (``src_camera.wraps``). ``True`` with a source that does not wrap is an error.
+        supersample: samples per destination pixel along each axis (an int for both, or ``(sx, sy)``);
+            ``None`` chooses them from the focal lengths (:func:`plan_resampling`), and then the source may
+            also be area-averaged first. An explicit value never pre-averages the source.
+        max_supersample: upper bound of the automatic supersampling per axis.
+        return_mask: also return the mask of destination pixels that have a source.
+
+    Returns:
+        ``[B,C,H',W']`` in the dtype of ``image`` (float32 for integer input); with ``return_mask``,
+        ``(image, mask [B,1,H',W'] bool)``. A destination pixel is valid when at least half of its samples
+        have a source (inside the source vertically, horizontally unless it wraps, and in front of a pinhole
+        camera); its colour is the mean of those samples. Invalid pixels are 0.
+    """
+    if image.dim() != 4:
+        raise ValueError(f"image must be [B,C,H,W], got {tuple(image.shape)}")
+    if not isinstance(dst_camera, CylindricalCamera):
+        raise TypeError(f"dst_camera must be a CylindricalCamera, got {type(dst_camera).__name__}")
+    b, _, h, w = image.shape
+    if (w, h) != src_camera.size:
+        raise ValueError(f"image is {w}x{h} but src_camera is {src_camera.width}x{src_camera.height}")
+    if wrap is None:
+        wrap = src_camera.wraps
+    elif wrap and not src_camera.wraps:
+        raise ValueError("wrap=True needs a source camera that covers a full turn (fx * 2 pi == width)")
+
+    if supersample is None:
+        (sx, sy), (kx, ky) = plan_resampling(src_camera, dst_camera, max_supersample)
+    else:
+        sx, sy = (supersample, supersample) if isinstance(supersample, int) else supersample
+        kx = ky = 1
+        if sx < 1 or sy < 1:
+            raise ValueError(f"supersample must be >= 1, got {supersample}")
+
+    out_dtype = image.dtype if image.is_floating_point() else torch.float32
+    src = image.float() if out_dtype != torch.float64 else image
+    cam = src_camera
+    if kx > 1 or ky > 1:
+        # area pre-average; the resized camera describes the averaged pixels (exact when k divides the size)
+        size = (max(1, h // ky), max(1, w // kx))
+        src = F.interpolate(src, size=size, mode="area")
+        cam = src_camera.resized(size[1], size[0])
+
+    big = (
+        dst_camera
+        if (sx, sy) == (1, 1)
+        else dst_camera.resized(dst_camera.width * sx, dst_camera.height * sy)
+    )
+    with torch.autocast(device_type=src.device.type, enabled=False):
+        grid = big.pixel_grid(1, device=src.device, dtype=torch.float64)
+        rays = big.rays(grid)
+        uv = cam.project(rays)
+        ok = cam.projectable(rays)
+        if uv.shape[0] == 1 and b > 1:
+            uv, ok = uv.expand(b, -1, -1, -1), ok.expand(b, -1, -1, -1)
+        sampled, valid = sample_image(src, uv, wrap)
+        valid = valid & ok
+        weight = valid.to(sampled.dtype)
+        sampled = sampled * weight
+        if (sx, sy) != (1, 1):
+            frac = F.avg_pool2d(weight, (sy, sx))
+            out = F.avg_pool2d(sampled, (sy, sx)) / frac.clamp(min=1e-6)
+            mask = frac >= 0.5
+            out = out * mask.to(out.dtype)
+        else:
+            out, mask = sampled, valid
+    out = out.to(out_dtype)
+    return (out, mask) if return_mask else out

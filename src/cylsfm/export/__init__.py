@@ -1,0 +1,1 @@
+"""Export of predictions: point clouds, meshes, stereo panoramas, viewer."""

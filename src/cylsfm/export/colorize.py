@@ -1,0 +1,120 @@
+"""Colour pictures of depth maps, and stacking pictures for previews.
+
+Depth is shown as inverse depth (disparity), which spreads the near range where a depth network's detail
+is, and is normalised with robust percentiles so that a few far (sky) or very near pixels do not wash out
+the rest: near is bright, far is dark, unknown depth (0, negative or non-finite) is black.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from functools import lru_cache
+
+import numpy as np
+
+from ..errors import CylsfmError
+
+__all__ = ["colorize_depth", "side_by_side"]
+
+#: Percentiles of the valid inverse depth mapped to the ends of the colour map when no limit is given.
+PERCENTILES = (5.0, 95.0)
+
+
+@lru_cache(maxsize=8)
+def _lut(cmap: str) -> np.ndarray:
+    """The colour map ``cmap`` as a ``uint8 [256,3]`` lookup table (matplotlib, imported here)."""
+    if "matplotlib" not in sys.modules:
+        # only colour maps are used, never a window: keep matplotlib off any interactive backend
+        os.environ.setdefault("MPLBACKEND", "Agg")
+    try:
+        import matplotlib
+    except ImportError:
+        raise CylsfmError("colourising depth needs matplotlib (pip install matplotlib)") from None
+    try:
+        cm = matplotlib.colormaps[cmap]
+    except KeyError:
+        raise CylsfmError(f"unknown matplotlib colour map {cmap!r}") from None
+    rgba = cm(np.linspace(0.0, 1.0, 256))
+    return np.round(np.asarray(rgba)[:, :3] * 255).astype(np.uint8)
+
+
+def colorize_depth(
+    depth: np.ndarray, vmin: float | None = None, vmax: float | None = None, cmap: str = "magma"
+) -> np.ndarray:
+    """Colour a depth map by its inverse depth.
+
+    Args:
+        depth: ``[H,W]`` depth (any unit; a network's depth or metres); values that are 0, negative or
+            not finite are unknown.
+        vmin: depth (same unit) shown with the brightest colour; nearer pixels are clipped to it. Default:
+            the depth at the 95th percentile of the valid inverse depth.
+        vmax: depth shown with the darkest colour; farther pixels are clipped to it. Default: the depth at
+            the 5th percentile of the valid inverse depth. Fix both to compare frames (e.g. of a video).
+        cmap: a matplotlib colour map name, read from its dark (far) to its bright (near) end for the
+            usual sequential maps (magma, inferno, viridis ...).
+
+    Returns:
+        ``uint8 [H,W,3]`` RGB; unknown pixels are black ``(0, 0, 0)``. When every valid pixel has the same
+        inverse depth, they all take the colour map's middle colour.
+    """
+    d = np.asarray(depth)
+    if d.ndim != 2:
+        raise ValueError(f"depth must be [H,W], got shape {d.shape}")
+    for name, lim in (("vmin", vmin), ("vmax", vmax)):
+        if lim is not None and not (math.isfinite(lim) and lim > 0):
+            raise ValueError(f"{name} must be a positive depth, got {lim}")
+    d = d.astype(np.float64, copy=False)
+    valid = np.isfinite(d) & (d > 0)
+    out = np.zeros((*d.shape, 3), dtype=np.uint8)
+    if not valid.any():
+        return out
+    vals = 1.0 / d[valid]  # inverse depth of the valid pixels
+    lo = 1.0 / vmax if vmax is not None else None
+    hi = 1.0 / vmin if vmin is not None else None
+    if lo is None or hi is None:
+        p_lo, p_hi = np.percentile(vals, PERCENTILES)
+        lo = p_lo if lo is None else lo
+        hi = p_hi if hi is None else hi
+    span = hi - lo
+    if not span > 0:
+        t = np.full(vals.shape, 0.5)
+    else:
+        t = np.clip((vals - lo) / span, 0.0, 1.0)
+    idx = np.round(t * 255).astype(np.intp)
+    out[valid] = _lut(cmap)[idx]
+    return out
+
+
+def side_by_side(images: list[np.ndarray], separator: int = 2, colour: int = 255) -> np.ndarray:
+    """Stack ``uint8`` pictures vertically (panoramas are wide) with a thin separating band.
+
+    Args:
+        images: ``uint8 [H_i,W,3]`` (or grey ``[H_i,W]``) pictures of one width ``W``.
+        separator: height in pixels of the band between two pictures.
+        colour: grey value of the band.
+
+    Returns:
+        ``uint8 [sum(H_i) + separator * (n - 1), W, 3]``.
+    """
+    if not images:
+        raise ValueError("side_by_side needs at least one image")
+    rows = []
+    width = None
+    for i, im in enumerate(images):
+        a = np.asarray(im)
+        if a.dtype != np.uint8:
+            raise ValueError(f"image {i} must be uint8, got {a.dtype}")
+        if a.ndim == 2:
+            a = np.repeat(a[:, :, None], 3, axis=2)
+        if a.ndim != 3 or a.shape[2] != 3:
+            raise ValueError(f"image {i} must be [H,W,3] or [H,W], got shape {a.shape}")
+        if width is None:
+            width = a.shape[1]
+        elif a.shape[1] != width:
+            raise ValueError(f"images must share one width, got {width} and {a.shape[1]} (image {i})")
+        if rows and separator > 0:
+            rows.append(np.full((separator, width, 3), colour, dtype=np.uint8))
+        rows.append(a)
+    return np.ascontiguousarray(np.concatenate(rows, axis=0))

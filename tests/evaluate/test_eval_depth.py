@@ -1,0 +1,260 @@
+"""Depth evaluation: Eigen et al. measures, median scaling, baselines, prediction directories, the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from cylsfm.cli import main
+from cylsfm.data import DatasetError, SequenceWriter, make_splits, scan_dataset
+from cylsfm.evaluate.depth import (
+    DEPTH_METRICS,
+    RowPrior,
+    depth_errors,
+    evaluate_depth,
+    evaluate_depth_maps,
+    resize_depth,
+)
+from cylsfm.geometry import CylindricalCamera
+
+
+# --------------------------------------------------------------------------------------- measures
+def test_depth_errors_by_hand():
+    gt = np.array([1.0, 2.0, 4.0, 3.0])
+    pred = np.array([2.0, 2.0, 2.0, 2.0])
+    e = depth_errors(gt, pred)
+    assert set(e) == set(DEPTH_METRICS)
+    # |gt - pred| / gt = 1, 0, 1/2, 1/3
+    assert e["abs_rel"] == pytest.approx((1 + 0 + 0.5 + 1 / 3) / 4)
+    # (gt - pred)^2 / gt = 1, 0, 1, 1/3
+    assert e["sq_rel"] == pytest.approx((1 + 0 + 1 + 1 / 3) / 4)
+    assert e["rmse"] == pytest.approx(math.sqrt((1 + 0 + 4 + 1) / 4))
+    ln2, ln15 = math.log(2), math.log(1.5)
+    assert e["rmse_log"] == pytest.approx(math.sqrt((ln2**2 + 0 + ln2**2 + ln15**2) / 4))
+    # max ratios 2, 1, 2, 1.5: below 1.25 one, below 1.5625 two, below 1.953 two
+    assert (e["a1"], e["a2"], e["a3"]) == (0.25, 0.5, 0.5)
+
+
+def test_depth_errors_accepts_tensors_and_rejects_bad_input():
+    e = depth_errors(torch.tensor([1.0, 2.0]), torch.tensor([1.0, 2.0]))
+    assert e["abs_rel"] == 0 and e["a1"] == 1
+    with pytest.raises(ValueError):
+        depth_errors(np.array([1.0, 0.0]), np.array([1.0, 1.0]))
+    with pytest.raises(ValueError):
+        depth_errors(np.array([1.0]), np.array([1.0, 1.0]))
+    with pytest.raises(ValueError):
+        depth_errors(np.array([]), np.array([]))
+
+
+def _random_pair(seed: int, h: int = 12, w: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    gt = rng.uniform(2, 60, (h, w))
+    gt[rng.random((h, w)) < 0.2] = 0  # unknown
+    gt[0, 0] = 120.0  # beyond max_depth: ignored
+    pred = gt * rng.uniform(0.7, 1.4, (h, w)) + 0.5
+    return gt, pred
+
+
+def test_median_scaling_invariance():
+    pairs = [_random_pair(s) for s in range(3)]
+    a = evaluate_depth_maps(pairs)
+    b = evaluate_depth_maps([(g, 7 * p) for g, p in pairs])
+    for k in DEPTH_METRICS:
+        assert b[k] == pytest.approx(a[k], rel=1e-9)
+    assert b["scale_mean"] == pytest.approx(a["scale_mean"] / 7)
+    assert a["n_images"] == 3
+    # without median scaling a scaled prediction is worse
+    c = evaluate_depth_maps([(g, 7 * p) for g, p in pairs], median_scaling=False)
+    assert c["abs_rel"] > 2 * a["abs_rel"] and c["scale_mean"] == 1 and c["scale_std"] == 0
+
+
+def test_perfect_prediction_and_unknown_pixels():
+    gt, _ = _random_pair(4)
+    pred = gt.copy()
+    pred[gt == 0] = 1000.0  # unknown ground truth: whatever is predicted there does not count
+    r = evaluate_depth_maps([(gt, pred), (torch.from_numpy(gt)[None], torch.from_numpy(pred)[None, None])])
+    assert r["abs_rel"] == pytest.approx(0, abs=1e-12) and r["rmse"] == pytest.approx(0, abs=1e-9)
+    assert r["a1"] == 1 and r["a3"] == 1
+    assert r["scale_mean"] == pytest.approx(1) and r["scale_std"] == pytest.approx(0, abs=1e-12)
+    assert r["n_images"] == 2
+
+
+def test_clamping_and_empty_images():
+    gt = np.full((4, 4), 10.0)
+    pred = np.full((4, 4), 10.0)
+    pred[0] = 1e9  # clamped to max_depth = 80 after (unit) scaling
+    r = evaluate_depth_maps([(gt, pred), (np.zeros((4, 4)), pred)])
+    assert r["n_images"] == 1  # the all-unknown image is skipped
+    assert r["rmse"] == pytest.approx(math.sqrt(70**2 * 4 / 16))
+
+
+def test_prediction_resized_to_ground_truth():
+    gt = np.tile(np.arange(1.0, 9.0)[:, None], (1, 16))  # depth grows with the row
+    small = gt[::2, ::2] * 0 + 5.0
+    assert resize_depth(small, gt.shape).shape == gt.shape
+    r = evaluate_depth_maps([(gt, small)])
+    const = evaluate_depth_maps([(gt, np.ones_like(gt))])
+    for k in DEPTH_METRICS:
+        assert r[k] == pytest.approx(const[k])
+
+
+def test_row_prior_histogram_median_and_resampling():
+    rng = np.random.default_rng(0)
+    maps = [rng.uniform(1, 50, (6, 10)) for _ in range(5)]
+    maps[0][2] = 0  # unknown pixels are left out
+    prior = RowPrior()
+    for m in maps:
+        prior.add(m)
+    stack = np.concatenate([m for m in maps], 1)
+    exact = np.array([np.median(row[row > 0]) for row in stack])
+    assert np.allclose(prior.medians(), exact, rtol=2e-3)
+    # resampled to twice the height: pixel centres, v' = (v + 0.5) / 2 - 0.5
+    big = prior.depth_map(12, 3)
+    assert big.shape == (12, 3) and np.all(big == big[:, :1])
+    src = np.clip((np.arange(12) + 0.5) / 2 - 0.5, 0, 5)
+    assert np.allclose(big[:, 0], np.interp(src, np.arange(6), prior.medians()))
+    # rows without data take the nearest rows' values
+    holes = RowPrior()
+    m = np.ones((3, 4)) * np.array([[2.0], [0.0], [8.0]])
+    holes.add(m)
+    assert np.allclose(holes.medians(), [2, 5, 8], rtol=2e-3)
+    assert RowPrior().medians() is None
+
+
+# --------------------------------------------------------------------------------------- toy dataset
+def _toy_dataset(root, train_depth, test_depth):
+    """One sequence of 6 frames 16x8: frames 0-2 train with ``train_depth(i)``, 3-5 test."""
+    cam = CylindricalCamera.full(16, 8)
+    w = SequenceWriter(root / "seq", cam)
+    rng = np.random.default_rng(1)
+    for i in range(6):
+        d = train_depth(i) if i < 3 else test_depth(i)
+        w.add_frame(rng.integers(0, 255, (8, 16, 3), dtype=np.uint8), d.astype(np.float32))
+    w.finish()
+    (root / "splits" / "default").mkdir(parents=True)
+    (root / "splits" / "default" / "train.txt").write_text("seq 000000\nseq 000001\nseq 000002\n")
+    (root / "splits" / "default" / "test.txt").write_text("seq 000003\nseq 000004\nseq 000005\n")
+    return cam
+
+
+def _write_predictions(pred_root, depth_of):
+    for i in range(6):
+        d = pred_root / "seq"
+        d.mkdir(parents=True, exist_ok=True)
+        np.save(d / f"{i:06d}.npy", depth_of(i))
+
+
+def test_per_row_prior_and_constant_baseline_on_toy_dataset(tmp_path):
+    rng = np.random.default_rng(5)
+    rows = np.linspace(3, 40, 8)[:, None]
+    train = [rows * rng.uniform(0.8, 1.2, (8, 16)) for _ in range(3)]
+    test = [np.flipud(rows) * rng.uniform(0.5, 2.0, (8, 16)) for _ in range(3)]  # very different rows
+    test[0][:, :3] = 0  # unknown
+    _toy_dataset(tmp_path, lambda i: train[i], lambda i: test[i - 3])
+    const_pred = tmp_path / "pred"
+    _write_predictions(const_pred, lambda i: np.full((4, 8), 3.0, np.float32))  # half size, constant
+    r = evaluate_depth(str(const_pred), tmp_path, split="test", prior_split="train")
+    assert r["n_images"] == 3 and r["prior_images"] == 3
+    # the constant baseline equals scoring a constant map
+    for k in DEPTH_METRICS:
+        assert r["model"][k] == pytest.approx(r["constant"][k], rel=1e-12)
+    # the per-row prior: each row's median over the training frames only
+    exact = np.median(np.concatenate(train, 1), axis=1)
+    prior_map = np.repeat(exact[:, None], 16, 1)
+    want = evaluate_depth_maps([(t, prior_map) for t in test])
+    for k in DEPTH_METRICS:
+        assert r["per_row"][k] == pytest.approx(want[k], rel=5e-3, abs=1e-3)
+    # a perfect prediction directory, with the SEQ/depth/ layout
+    perfect = tmp_path / "perfect" / "seq" / "depth"
+    perfect.mkdir(parents=True)
+    for i in range(6):
+        shutil.copy(tmp_path / "seq" / "depth" / f"{i:06d}.npy", perfect / f"{i:06d}.npy")
+    r = evaluate_depth(str(tmp_path / "perfect"), tmp_path, split="test")
+    assert r["model"]["abs_rel"] == pytest.approx(0, abs=1e-7) and r["model"]["a1"] == 1
+    assert r["per_row"]["abs_rel"] > 0.1
+
+
+def test_missing_prediction_names_the_file(tmp_path):
+    rows = np.linspace(3, 40, 8)[:, None] * np.ones((8, 16))
+    _toy_dataset(tmp_path, lambda i: rows, lambda i: rows)
+    _write_predictions(tmp_path / "pred", lambda i: rows)
+    (tmp_path / "pred" / "seq" / "000004.npy").unlink()
+    with pytest.raises(DatasetError, match=r"pred/seq/000004\.npy: prediction not found"):
+        evaluate_depth(str(tmp_path / "pred"), tmp_path)
+    # frames without a prediction outside the split are not needed
+    evaluate_depth(str(tmp_path / "pred"), tmp_path, split="train", prior_split=None)
+
+
+# --------------------------------------------------------------------------------------- CLI
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    """2 synthetic sequences x 8 frames at 128x32 (train: one sequence, test: the other) and an untrained
+    checkpoint."""
+    from cylsfm.data.synthetic import generate_dataset
+    from cylsfm.train.checkpoint import build_models, save_checkpoint
+    from cylsfm.train.config import config_to_dict, preset
+
+    base = tmp_path_factory.mktemp("evaldepth")
+    root = base / "data"
+    generate_dataset(root, sequences=2, frames=8, width=128, height=32, seed=3, workers=1, progress=False)
+    make_splits(root, mode="sequence", fractions=(0.5, 0.0, 0.5))
+    cfg = preset("default")
+    cfg.data.width, cfg.data.height = 128, 32
+    torch.manual_seed(0)
+    disp, pose = build_models(cfg)
+    ckpt = base / "model.pt"
+    save_checkpoint(
+        ckpt,
+        {
+            "config": config_to_dict(cfg),
+            "step": 0,
+            "disp_net": disp.state_dict(),
+            "pose_net": pose.state_dict(),
+        },
+    )
+    return root, ckpt
+
+
+def test_cli_depth_with_checkpoint_writes_json(synth, tmp_path, capsys):
+    root, ckpt = synth
+    out = tmp_path / "depth.json"
+    args = ["evaluate", "depth", "--checkpoint", str(ckpt), "--data", str(root), "--json", str(out)]
+    assert main([*args, "--device", "cpu", "--no-progress", "--batch-size", "3"]) == 0
+    text = capsys.readouterr().out
+    assert "per_row" in text and "model/constant" in text and "model/per_row" in text
+    data = json.loads(out.read_text())
+    keys = {*DEPTH_METRICS, "n_images", "scale_mean", "scale_std"}
+    assert keys <= set(data) and set(data) == keys | {"baselines", "meta"}
+    assert data["n_images"] == 6  # the test sequence's targets (frames 1..6)
+    assert set(data["baselines"]) == {"constant", "per_row"}
+    for name in ("constant", "per_row"):
+        assert set(data["baselines"][name]) == keys
+    assert data["meta"]["prior_images"] == 6
+    assert all(0 <= data[k] <= 1 for k in ("a1", "a2", "a3"))
+
+
+def test_cli_depth_perfect_and_missing_predictions(synth, tmp_path, capsys):
+    root, _ = synth
+    pred = tmp_path / "pred"
+    for seq in scan_dataset(root):
+        (pred / seq.name).mkdir(parents=True)
+        for path in seq.depths:
+            shutil.copy(path, pred / seq.name / path.name)
+    out = tmp_path / "perfect.json"
+    args = ["evaluate", "depth", "--predictions", str(pred), "--data", str(root), "--no-progress"]
+    assert main([*args, "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data["abs_rel"] == pytest.approx(0, abs=1e-6) and data["a1"] == 1
+    assert data["baselines"]["constant"]["abs_rel"] > 0.01
+    test_seq = (root / "splits" / "default" / "test.txt").read_text().split("\n")[2].split()[0]
+    missing = pred / test_seq / "000003.npy"
+    missing.unlink()
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

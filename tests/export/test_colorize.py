@@ -1,0 +1,76 @@
+"""Colouring depth maps by inverse depth, and stacking previews."""
+
+import numpy as np
+import pytest
+
+from cylsfm.errors import CylsfmError
+from cylsfm.export.colorize import colorize_depth, side_by_side
+
+
+def _lightness(rgb: np.ndarray) -> np.ndarray:
+    return rgb.astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+
+
+def test_shape_dtype_and_unknown_pixels_are_black():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(1, 50, size=(16, 40)).astype(np.float32)
+    depth[0, :5] = 0
+    depth[1, 0] = np.nan
+    depth[1, 1] = np.inf
+    depth[1, 2] = -3
+    out = colorize_depth(depth)
+    assert out.shape == (16, 40, 3) and out.dtype == np.uint8
+    assert (out[0, :5] == 0).all() and (out[1, :3] == 0).all()
+    assert (out[2:].max(axis=-1) > 0).all()  # magma's darkest colour is not pure black
+    assert (colorize_depth(np.zeros((4, 6), np.float32)) == 0).all()
+
+
+def test_near_is_bright_and_monotonic():
+    depth = np.tile(np.linspace(1.0, 80.0, 200, dtype=np.float32), (3, 1))
+    light = _lightness(colorize_depth(depth))[1]
+    assert np.all(np.diff(light) <= 1e-9)
+    assert light[0] > light[-1] + 150
+    # other sequential colour maps read the same way
+    light = _lightness(colorize_depth(depth, cmap="viridis"))[1]
+    assert light[0] > light[-1]
+
+
+def test_robust_percentiles_and_fixed_limits():
+    depth = np.full((10, 100), 10.0, dtype=np.float32)
+    depth[:, :50] = 5.0
+    depth[0, 0] = 0.01  # one absurdly near pixel does not wash out the rest
+    out = colorize_depth(depth)
+    assert np.abs(_lightness(out[5, 10]) - _lightness(out[5, 80])) > 100
+    np.testing.assert_array_equal(out[0, 0], out[5, 10])  # clipped to the brightest colour
+    # fixed limits: depth <= vmin brightest, >= vmax darkest, the same colours in every frame
+    a = colorize_depth(depth, vmin=2.0, vmax=20.0)
+    b = colorize_depth(depth * 1.0, vmin=2.0, vmax=20.0)
+    np.testing.assert_array_equal(a, b)
+    top = colorize_depth(np.array([[1.0, 2.0, 20.0, 100.0]], np.float32), vmin=2.0, vmax=20.0)
+    np.testing.assert_array_equal(top[0, 0], top[0, 1])
+    np.testing.assert_array_equal(top[0, 2], top[0, 3])
+    assert _lightness(top[0, 0]) > _lightness(top[0, 2])
+    with pytest.raises(ValueError, match="vmin"):
+        colorize_depth(depth, vmin=0.0)
+
+
+def test_constant_depth_and_bad_input():
+    out = colorize_depth(np.full((3, 4), 7.0, np.float32))
+    assert (out == out[0, 0]).all() and out[0, 0].max() > 0
+    with pytest.raises(ValueError, match=r"\[H,W\]"):
+        colorize_depth(np.ones((2, 3, 4), np.float32))
+    with pytest.raises(CylsfmError, match="colour map"):
+        colorize_depth(np.ones((2, 3), np.float32), cmap="no-such-map")
+
+
+def test_side_by_side_stacks_vertically_with_a_separator():
+    a = np.full((4, 10, 3), 10, np.uint8)
+    b = np.full((6, 10), 20, np.uint8)  # grey is expanded to RGB
+    out = side_by_side([a, b], separator=2)
+    assert out.shape == (12, 10, 3) and out.dtype == np.uint8
+    assert (out[:4] == 10).all() and (out[4:6] == 255).all() and (out[6:] == 20).all()
+    assert side_by_side([a]).shape == a.shape
+    with pytest.raises(ValueError, match="width"):
+        side_by_side([a, np.zeros((4, 11, 3), np.uint8)])
+    with pytest.raises(ValueError, match="uint8"):
+        side_by_side([a.astype(np.float32)])

@@ -1,0 +1,176 @@
+"""``cylsfm predict``: images, folders, videos and equirectangular footage with an (untrained) checkpoint."""
+
+import json
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+from PIL import Image
+
+from cylsfm.cli import main
+from cylsfm.geometry import CylindricalCamera, EquirectangularCamera, PinholeCamera
+from cylsfm.inference import Predictor
+from cylsfm.predict import model_camera, predict
+from cylsfm.train.checkpoint import build_models, save_checkpoint
+from cylsfm.train.config import config_to_dict, preset
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory) -> Path:
+    """An untrained checkpoint at 128x32 (aspect 4)."""
+    cfg = preset("default")
+    cfg.data.width, cfg.data.height = 128, 32
+    disp, pose = build_models(cfg)
+    path = tmp_path_factory.mktemp("ckpt") / "model.pt"
+    state = {"config": config_to_dict(cfg), "step": 0, "disp_net": disp.state_dict()}
+    save_checkpoint(path, {**state, "pose_net": pose.state_dict()})
+    return path
+
+
+def _png(path: Path, width: int, height: int, seed: int = 0) -> Path:
+    rng = np.random.default_rng(seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(rng.integers(0, 256, (height, width, 3), dtype=np.uint8)).save(path)
+    return path
+
+
+def _video(path: Path, frames: int = 6, size=(256, 64), rate: int = 10) -> Path:
+    rng = np.random.default_rng(1)
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("mpeg4", rate=rate)
+        stream.width, stream.height, stream.pix_fmt = size[0], size[1], "yuv420p"
+        for _ in range(frames):
+            arr = rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)
+            for packet in stream.encode(av.VideoFrame.from_ndarray(arr, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode(None):
+            container.mux(packet)
+    return path
+
+
+def _run(ckpt, *args) -> int:
+    return main(["predict", "--checkpoint", str(ckpt), "--device", "cpu", *map(str, args)])
+
+
+def _no_temporaries(out: Path) -> None:
+    assert not [p for p in out.rglob(".*")], list(out.rglob(".*"))
+
+
+def test_images_and_a_folder(ckpt, tmp_path, capsys):
+    a = _png(tmp_path / "in" / "a.png", 512, 128, 0)
+    b = _png(tmp_path / "in" / "b.jpg", 512, 128, 1)
+    folder = tmp_path / "frames"
+    for i in range(3):
+        _png(folder / f"f{i:02d}.png", 256, 64, i)
+    (folder / "notes.txt").write_text("not an image")
+    out = tmp_path / "out"
+    assert _run(ckpt, a, b, folder, "--out", out, "--batch-size", "2") == 0
+    assert "wrote 5 depth maps of 3 input(s)" in capsys.readouterr().out
+    for name, stem, shape in [("a", "a", (128, 512)), ("b", "b", (128, 512)), ("frames", "f01", (64, 256))]:
+        depth = np.load(out / name / f"{stem}.npy")
+        assert depth.dtype == np.float32 and depth.shape == shape
+        assert np.isfinite(depth).all() and (depth > 0).all()
+        with Image.open(out / name / f"{stem}.png") as im:
+            assert im.size == (shape[1], shape[0]) and im.mode == "RGB"
+    assert sorted(p.name for p in (out / "frames").iterdir()) == [
+        f"f{i:02d}.{s}" for i in range(3) for s in ("npy", "png")
+    ]
+    _no_temporaries(out)
+
+
+def test_video_with_preview_and_fps(ckpt, tmp_path):
+    vid = _video(tmp_path / "ride.mp4")
+    out = tmp_path / "out"
+    assert _run(ckpt, vid, "--out", out, "--no-png", "--batch-size", "4") == 0
+    names = sorted(p.name for p in (out / "ride").iterdir())
+    assert names == [f"{i:06d}.npy" for i in range(6)]  # --no-png
+    assert np.load(out / "ride" / "000005.npy").shape == (64, 256)
+    with av.open(str(out / "ride.mp4")) as container:
+        stream = container.streams.video[0]
+        frames = [f.to_ndarray(format="rgb24") for f in container.decode(stream)]
+        assert stream.codec_context.name in ("h264", "mpeg4")
+    assert len(frames) == 6
+    h, w = frames[0].shape[:2]
+    assert w == 256 and h == 64 + 2 + 64 and h % 2 == 0 and w % 2 == 0  # input above depth
+    _no_temporaries(out)
+    # --fps 5 on a 10 fps video keeps every other frame, named by their index in the video
+    out2 = tmp_path / "out2"
+    assert _run(ckpt, vid, "--out", out2, "--fps", "5") == 0
+    assert sorted(p.stem for p in (out2 / "ride").glob("*.npy")) == ["000000", "000002", "000004"]
+    with av.open(str(out2 / "ride.mp4")) as container:
+        assert sum(1 for _ in container.decode(video=0)) == 3
+
+
+def test_equirectangular_input_is_converted_to_the_model_cylinder(ckpt, tmp_path):
+    img = _png(tmp_path / "pano.png", 256, 128)
+    cam = tmp_path / "camera.json"
+    EquirectangularCamera.full(256, 128).to_json(cam)
+    # without --camera a 2:1 image is refused: the model takes 4:1 cylinders
+    assert _run(ckpt, img, "--out", tmp_path / "refused") == 2
+    out = tmp_path / "out"
+    assert _run(ckpt, img, "--out", out, "--camera", cam) == 0
+    depth = np.load(out / "pano" / "pano.npy")
+    assert depth.shape == (32, 128)  # the converted cylinder, at the network's input size
+    # the model's cylinder: full 360 degrees, the training vertical field of view
+    predictor = Predictor.from_checkpoint(ckpt, "cpu")
+    target = model_camera(predictor)
+    assert target.size == (128, 32) and target.wraps
+    assert target.height / (2 * target.fy) == pytest.approx(1.0)
+    # a cylindrical camera.json of the training field of view is used as it is (depth at input size)
+    cyl = tmp_path / "cyl.json"
+    CylindricalCamera.full(512, 128).to_json(cyl)
+    wide = _png(tmp_path / "wide.png", 512, 128)
+    summary = predict(predictor, [wide], tmp_path / "out3", camera=cyl, progress=False)
+    assert summary.total == 1 and np.load(tmp_path / "out3" / "wide" / "wide.npy").shape == (128, 512)
+
+
+def test_wrong_aspect_is_refused_naming_the_file(ckpt, tmp_path, capsys):
+    bad = _png(tmp_path / "square.png", 100, 100)
+    out = tmp_path / "out"
+    assert _run(ckpt, bad, "--out", out) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "square.png" in err and "100x100" in err
+    assert "4.000" in err and "--camera" in err
+    assert not (out / "square").exists()
+    # a pinhole camera is refused too
+    cam = tmp_path / "pinhole.json"
+    PinholeCamera.from_fov(100, 100, 90).to_json(cam)
+    assert _run(ckpt, bad, "--out", out, "--camera", cam) == 2
+    assert "pinhole" in capsys.readouterr().err
+
+
+def test_corrupt_inputs_are_one_line_errors(ckpt, tmp_path, capsys):
+    junk = tmp_path / "junk.png"
+    junk.write_bytes(b"\x89PNG\r\n\x1a\n this is not an image")
+    assert _run(ckpt, junk, "--out", tmp_path / "out") == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "junk.png" in err and "Traceback" not in err
+    vid = tmp_path / "clip.mp4"
+    vid.write_bytes(b"\x00\x00\x00\x18ftypmp42 garbage garbage garbage")
+    assert _run(ckpt, vid, "--out", tmp_path / "out") == 2
+    assert "clip.mp4" in capsys.readouterr().err
+    assert _run(ckpt, tmp_path / "missing.png", "--out", tmp_path / "out") == 2
+    assert "missing.png" in capsys.readouterr().err
+
+
+def test_a_failure_midway_keeps_what_was_written(ckpt, tmp_path, capsys):
+    good = _png(tmp_path / "in" / "good.png", 512, 128)
+    whole = _png(tmp_path / "cut.png", 512, 128).read_bytes()
+    cut = tmp_path / "in" / "cut.png"
+    cut.write_bytes(whole[: len(whole) // 2])  # the header is fine, the pixels are not
+    out = tmp_path / "out"
+    assert _run(ckpt, good, cut, "--out", out) == 2
+    assert "cut.png" in capsys.readouterr().err
+    assert np.load(out / "good" / "good.npy").shape == (128, 512)
+    assert (out / "good" / "good.png").exists()
+    _no_temporaries(out)
+
+
+def test_same_names_do_not_collide(ckpt, tmp_path):
+    a = _png(tmp_path / "x" / "pano.png", 512, 128, 0)
+    b = _png(tmp_path / "y" / "pano.png", 512, 128, 1)
+    summary = predict(ckpt, [a, b], tmp_path / "out", device="cpu", progress=False)
+    assert sorted(summary.frames) == ["pano", "pano-2"]
+    assert (tmp_path / "out" / "pano-2" / "pano.npy").exists()
+    assert json.loads(json.dumps(summary.total)) == 2

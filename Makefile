@@ -17,7 +17,7 @@ $(STAMP): $(BIN)/python pyproject.toml constraints.txt
 setup: $(STAMP)
 
 demo: setup
-	$(BIN)/cylsfm demo
+	$(BIN)/cylsfm demo --out demo_out
 
 test: setup
 	$(BIN)/ruff check src tests benchmarks

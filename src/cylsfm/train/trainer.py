@@ -376,12 +376,17 @@ class Trainer:
         start_step, t0 = self.step, time.monotonic()
         deadline = t0 + cfg.minutes * 60 if cfg.minutes else math.inf
         bar = None
+        # With a time budget the bar counts its seconds (so the ETA is the budget's end); otherwise steps.
+        by_time = cfg.minutes is not None
         if progress and self.dist.main:
             from tqdm import tqdm
 
-            bar = tqdm(
-                total=cfg.max_steps, initial=self.step, unit="step", dynamic_ncols=True, file=sys.stderr
-            )
+            if by_time:
+                bar = tqdm(total=round(cfg.minutes * 60), unit="s", dynamic_ncols=True, file=sys.stderr)
+            else:
+                bar = tqdm(
+                    total=cfg.max_steps, initial=self.step, unit="step", dynamic_ncols=True, file=sys.stderr
+                )
         last_log, samples_since = time.monotonic(), 0
         stopped = "max_steps"
         loader = self._loader()
@@ -401,8 +406,12 @@ class Trainer:
                 if cfg.image_every and self.step % cfg.image_every == 0:
                     self._log_images(visuals)
                 if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{scalars['total']:.4f}", refresh=False)
+                    if by_time:
+                        bar.update(min(round(time.monotonic() - t0), bar.total) - bar.n)
+                        bar.set_postfix(step=self.step, loss=f"{scalars['total']:.4f}", refresh=False)
+                    else:
+                        bar.update(1)
+                        bar.set_postfix(loss=f"{scalars['total']:.4f}", refresh=False)
                 keep = cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0
                 if keep or (cfg.latest_every and self.step % cfg.latest_every == 0):
                     self.save(keep=bool(keep))

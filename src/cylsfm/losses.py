@@ -128,7 +128,9 @@ def ssim_error(x: Tensor, y: Tensor, wrap: bool) -> Tensor:
     c1, c2 = 0.01**2, 0.03**2
     xp, yp = _pad_for_window(x, wrap), _pad_for_window(y, wrap)
     stacked = torch.cat((xp, yp, xp * xp, yp * yp, xp * yp), 1)
-    pooled = F.avg_pool2d(stacked, 3, 1)
+    # a depthwise 3x3 box filter: several times faster than avg_pool2d on the CPU, forward and backward
+    box = torch.full((stacked.shape[1], 1, 3, 3), 1.0 / 9, dtype=stacked.dtype, device=stacked.device)
+    pooled = F.conv2d(stacked, box, groups=stacked.shape[1])
     mx, my, mxx, myy, mxy = pooled.chunk(5, 1)
     sx, sy, sxy = mxx - mx * mx, myy - my * my, mxy - mx * my
     ssim = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sx + sy + c2))
@@ -275,6 +277,16 @@ def view_synthesis_loss(
         source_pyramid = image_pyramid(sources, photo_sizes)
     photo_targets = [target] * len(sizes) if cfg.full_resolution else target_pyramid
     cams: dict[tuple[int, int], Camera] = {}
+    identity: dict[tuple[int, int], list[Tensor]] = {}  # errors without warping, per size (auto-masking)
+
+    def identity_errors(size: tuple[int, int], tgt: Tensor, src: Tensor) -> list[Tensor]:
+        if size not in identity:  # the same at every scale of a full-resolution loss: computed once
+            with torch.no_grad():
+                identity[size] = [
+                    photometric_error(tgt, src[:, k], cfg.ssim_weight, wrap) for k in range(n_src)
+                ]
+        return identity[size]
+
     zero = target.new_zeros(())
     photometric, smooth, explain = zero, zero, zero
     warped_log, error_log = None, None
@@ -304,9 +316,7 @@ def view_synthesis_loss(
             best, _ = err.min(1, keepdim=True)
             use = weight * (val.amax(1, keepdim=True))
             if cfg.automask:
-                ident = torch.cat(
-                    [photometric_error(tgt, src[:, k], cfg.ssim_weight, wrap) for k in range(n_src)], 1
-                )
+                ident = torch.cat(identity_errors((h, w), tgt, src), 1)
                 ident = ident + 1e-5 * torch.randn_like(ident)  # break ties as monodepth2 does
                 use = use * (best < ident.min(1, keepdim=True).values).to(use.dtype)
             photometric = photometric + _masked_mean(best, use)
@@ -316,7 +326,7 @@ def view_synthesis_loss(
             for k in range(n_src):
                 use = weight * valids[k]
                 if cfg.automask:
-                    ident = photometric_error(tgt, src[:, k], cfg.ssim_weight, wrap)
+                    ident = identity_errors((h, w), tgt, src)[k]
                     use = use * (errors[k] < ident).to(use.dtype).detach()
                 e = errors[k]
                 if explainability is not None:

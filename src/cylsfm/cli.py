@@ -317,6 +317,13 @@ def _evaluate_args(p: argparse.ArgumentParser) -> None:
         "--no-median-scaling", action="store_true", help="score the model's depth as it is (metric methods)"
     )
     pose.add_argument("--snippet", type=int, default=5, help="frames per ATE snippet (default 5)")
+    pose.add_argument(
+        "--yaw-roll",
+        type=int,
+        metavar="SEED",
+        help="roll each test sequence by a random yaw (seeded), turning the ground truth with it: as if the "
+        "camera had been mounted turned about its vertical axis",
+    )
     pose.add_argument("--stride", type=int, help="frame step (default: the model's; 1 for --trajectory)")
     pose.add_argument("--out", help="directory for the model's TUM trajectories and top-view plots")
 
@@ -388,6 +395,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             out=args.out,
             batch_size=args.batch_size,
             progress=progress,
+            yaw_roll=args.yaw_roll,
         )
         print(format_pose_table(result))
         if args.out:

@@ -236,3 +236,61 @@ def test_cli_pose_checkpoint_then_trajectory(synth, tmp_path, capsys):
     assert main([*args, "--trajectory", str(out)]) == 2
     err = capsys.readouterr().err
     assert str(out / f"{test_seq}.txt") in err and "Traceback" not in err
+
+
+class _OraclePoses:
+    """A stand-in for the pose network that returns the true relative poses of the frames it is shown.
+
+    It finds out how far its frames were rolled (by matching them with the dataset's own frames) and,
+    when ``equivariant``, turns the true motion with the roll; otherwise it ignores the roll, as the
+    paper's roll-invariant pose head must.
+    """
+
+    def __init__(self, seq, equivariant: bool):
+        from cylsfm.data.format import load_image
+
+        self.frames = [
+            torch.from_numpy(np.array(load_image(p))).permute(2, 0, 1).float() / 255 for p in seq.images
+        ]
+        self.c2w = seq.poses
+        self.equivariant = equivariant
+        self.config = type("C", (), {"data": type("D", (), {"seq_length": 3, "stride": 1})()})()
+
+    def _locate(self, image):
+        w = image.shape[-1]
+        for i, f in enumerate(self.frames):
+            for k in range(w):
+                if torch.allclose(torch.roll(f, k, -1), image, atol=1e-6):
+                    return i, k
+        raise AssertionError("frame not found")
+
+    def poses(self, target, sources, camera):
+        out = []
+        for b in range(target.shape[0]):
+            t, k = self._locate(target[b])
+            rel = []
+            for s in range(sources.shape[1]):
+                j, _ = self._locate(sources[b, s])
+                T = np.linalg.inv(self.c2w[j]) @ self.c2w[t]
+                if self.equivariant:
+                    from cylsfm.evaluate.pose import _yaw4
+
+                    y = _yaw4(2 * np.pi * k / camera.width)
+                    T = y @ T @ np.linalg.inv(y)
+                rel.append(T)
+            out.append(np.stack(rel))
+        return torch.from_numpy(np.stack(out))
+
+
+def test_yaw_rolled_evaluation_turns_the_ground_truth_with_the_images(synth):
+    """An equivariant oracle scores zero on yaw-rolled sequences; a roll-invariant one does not."""
+    root, _ = synth
+    seq = scan_dataset(root)[1]
+    kwargs = {"split": "test", "snippet": 5, "yaw_roll": 3}
+    exact = evaluate_pose(_OraclePoses(seq, equivariant=True), root, **kwargs)
+    assert exact["model"]["ate_mean"] == pytest.approx(0, abs=1e-6)
+    assert exact["sequences"][seq.name]["yaw_roll_columns"] > 0
+    blind = evaluate_pose(_OraclePoses(seq, equivariant=False), root, **kwargs)
+    assert blind["model"]["ate_mean"] > 0.05
+    plain = evaluate_pose(_OraclePoses(seq, equivariant=False), root, split="test", snippet=5)
+    assert plain["model"]["ate_mean"] == pytest.approx(0, abs=1e-6)

@@ -232,6 +232,14 @@ def consecutive_from_windows(windows: dict[int, np.ndarray], m: int, seq_length:
     return out
 
 
+def _yaw4(angle: float) -> np.ndarray:
+    """4x4 rotation about the vertical axis that increases azimuths by ``angle`` (``yaw_matrix``)."""
+    c, s_ = np.cos(angle), np.sin(angle)
+    out = np.eye(4)
+    out[:3, :3] = [[c, 0, s_], [0, 1, 0], [-s_, 0, c]]
+    return out
+
+
 def predict_consecutive(
     predictor: Any,
     images: Sequence[Path],
@@ -239,6 +247,7 @@ def predict_consecutive(
     batch_size: int = 8,
     progress: bool | None = False,
     desc: str = "poses",
+    roll: int = 0,
 ) -> np.ndarray:
     """Run the pose network over a chain of frames and return ``T_{j->j+1}`` ``[M-1,4,4]`` (float64).
 
@@ -247,6 +256,7 @@ def predict_consecutive(
         images: the chain's image files in time order (``M >= seq_length``).
         camera: their camera.
         batch_size: windows per network call.
+        roll: roll every frame horizontally by this many columns first (a yaw of the camera).
     """
     seq_length = int(predictor.config.data.seq_length)
     k = (seq_length - 1) // 2
@@ -257,7 +267,8 @@ def predict_consecutive(
 
     def load(chunk: list[int]) -> torch.Tensor:
         frames = [load_image(images[f]) for f in range(chunk[0] - k, chunk[-1] + k + 1)]
-        return _to_tensor(frames)
+        batch = _to_tensor(frames)
+        return torch.roll(batch, roll, dims=-1) if roll else batch
 
     bar = _progress(len(centres), desc, progress)
     with ThreadPoolExecutor(max_workers=2) as pool:
@@ -489,6 +500,7 @@ def evaluate_pose(
     out: PathLike | None = None,
     batch_size: int = 8,
     progress: bool | None = False,
+    yaw_roll: int | None = None,
 ) -> dict[str, Any]:
     """Evaluate ego-motion on a dataset's ground-truth poses, with the zero-motion and constant-velocity
     baselines (protocol in the module docstring).
@@ -509,6 +521,11 @@ def evaluate_pose(
             aligned trajectories); ``None``: write nothing.
         batch_size: windows per network call.
         progress: show progress bars (``None``: when stderr is a terminal).
+        yaw_roll: a seed: roll every frame of each evaluated sequence by a random number of columns
+            (drawn per sequence) before the network sees it, as if the 360-degree camera had been mounted
+            turned about its vertical axis. The ground truth is turned with it
+            (``c2w' = c2w @ inv(yaw_matrix(2 pi k / W))``). Full panoramas and models only. This is how
+            the paper's pose head (invariant to such rolls) and the yaw-equivariant head are compared.
 
     Returns:
         ``{"model": {ate_mean, ate_std, n_snippets, ape_rmse, ...}, "zero_motion": {...},
@@ -540,14 +557,24 @@ def evaluate_pose(
         raise ValueError(f"stride must be >= 1, got {step}")
     out_dir = None if out is None else Path(out)
 
+    if yaw_roll is not None and predictor is None:
+        raise ValueError("yaw_roll applies to a model's predictions, not to a given trajectory")
     snippets: dict[str, list[np.ndarray]] = {"model": [], "zero_motion": [], "constant_velocity": []}
     per_seq: dict[str, dict[str, Any]] = {}
-    for seq in chosen:
+    for n_seq, seq in enumerate(chosen):
         index = np.arange(0, len(seq), step)
         m = len(index)
         times = seq.timestamps[index] if seq.timestamps is not None else index.astype(np.float64)
         info: dict[str, Any] = {"n_frames": m}
         gt = None if seq.poses is None else seq.poses[index]
+        roll = 0
+        if yaw_roll is not None:
+            if not seq.camera.wraps:
+                raise DatasetError(f"{seq.path / 'camera.json'}: yaw rolls need full 360-degree panoramas")
+            roll = int(np.random.default_rng([yaw_roll, n_seq]).integers(seq.camera.width))
+            info["yaw_roll_columns"] = roll
+            if gt is not None:
+                gt = gt @ np.linalg.inv(_yaw4(2 * np.pi * roll / seq.camera.width))
         # ---- the estimate on the chain frames
         if predictor is not None:
             seq_length = int(predictor.config.data.seq_length)
@@ -559,7 +586,7 @@ def evaluate_pose(
                 )
                 continue
             steps = predict_consecutive(
-                predictor, [seq.images[i] for i in index], seq.camera, batch_size, progress, seq.name
+                predictor, [seq.images[i] for i in index], seq.camera, batch_size, progress, seq.name, roll
             )
             est = chain_poses(steps)
             matched = np.ones(m, dtype=bool)
@@ -634,6 +661,7 @@ def evaluate_pose(
         "split": None if split is None else str(split),
         "split_name": split_name,
         "out": None if out_dir is None else str(out_dir),
+        "yaw_roll": yaw_roll,
     }
 
 
@@ -649,7 +677,7 @@ def pose_json(result: dict[str, Any]) -> dict[str, Any]:
                    "constant_velocity": {same keys as the model}},
      "sequences": {SEQ: {"n_frames", "n_matched", "n_snippets", "ate_mean", "model": {...},
                          "zero_motion": {...}, "constant_velocity": {...}, "tum", "plot"}},
-     "meta": {"source", "data", "split", "split_name", "snippet", "stride", "out"}}
+     "meta": {"source", "data", "split", "split_name", "snippet", "stride", "out", "yaw_roll"}}
     """
     out = dict(result["model"])
     out["baselines"] = {
@@ -658,7 +686,8 @@ def pose_json(result: dict[str, Any]) -> dict[str, Any]:
     }
     out["sequences"] = result["sequences"]
     out["meta"] = {
-        k: result[k] for k in ("source", "data", "split", "split_name", "snippet", "stride", "out")
+        k: result.get(k)
+        for k in ("source", "data", "split", "split_name", "snippet", "stride", "out", "yaw_roll")
     }
     return out
 

@@ -198,3 +198,23 @@ def test_set_wrap_flips_layers() -> None:
     assert not model[0].wrap and not model[2][0].wrap
     set_wrap(model, True)
     assert model[0].wrap and model[2][0].wrap
+
+
+def test_pad_cat_equals_cat_then_circular_pad_with_gradients() -> None:
+    from cylsfm.nn.layers import pad_cat
+
+    torch.manual_seed(0)
+    a = torch.randn(2, 3, 4, 8, requires_grad=True)
+    b = torch.randn(2, 5, 4, 8, requires_grad=True)
+    for pad in (1, 2):
+        out = pad_cat([a, b], pad)
+        ref = torch.cat([a, b], 1)
+        ref = torch.cat([ref[..., -pad:], ref, ref[..., :pad]], -1)
+        torch.testing.assert_close(out, ref)
+        g = torch.randn_like(ref)
+        ga, gb = torch.autograd.grad((out * g).sum(), (a, b))
+        ra, rb = torch.autograd.grad((ref * g).sum(), (a, b))
+        torch.testing.assert_close(ga, ra)
+        torch.testing.assert_close(gb, rb)
+    cl = pad_cat([a.contiguous(memory_format=torch.channels_last), b], 1)
+    assert cl.is_contiguous(memory_format=torch.channels_last)

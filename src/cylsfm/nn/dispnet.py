@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from cylsfm.nn.layers import WrapConv2d, WrapConvTranspose2d, crop_like, wrap_upsample2x
+from cylsfm.nn.layers import WrapConv2d, WrapConvTranspose2d, crop_like, pad_cat, wrap_upsample2x
 
 __all__ = ["MIN_HEIGHT", "MIN_WIDTH", "TOTAL_STRIDE", "DispNet", "check_input_size"]
 
@@ -186,7 +186,12 @@ class DispNet(nn.Module):
                 parts.append(skip)
             if disps:
                 parts.append(crop_like(wrap_upsample2x(disps[-1], self.wrap), x))
-            x = iconv(torch.cat(parts, dim=1))
+            conv = iconv[0]
+            if self.wrap and conv.wrap and conv.pad and conv.pad <= x.shape[-1]:
+                # concatenate and pad for the wrapped convolution in one copy
+                x = iconv[1](conv.forward_padded(pad_cat(parts, conv.pad)))
+            else:
+                x = iconv(torch.cat(parts, dim=1))
             if i >= 3:
                 disps.append(self.disp_heads[i - 3](x))
         return disps[::-1]

@@ -22,7 +22,7 @@ from torch import nn
 
 from ..geometry import resize_image
 
-__all__ = ["WrapConv2d", "WrapConvTranspose2d", "crop_like", "set_wrap", "wrap_upsample2x"]
+__all__ = ["WrapConv2d", "WrapConvTranspose2d", "crop_like", "pad_cat", "set_wrap", "wrap_upsample2x"]
 
 
 def _memory_format_of(x: torch.Tensor) -> torch.memory_format:
@@ -90,6 +90,51 @@ def _circular_pad_width(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
     return out.contiguous(memory_format=_memory_format_of(x))
 
 
+class _PadCat(torch.autograd.Function):
+    """Channel concatenation and circular width padding in one copy (and one copy back)."""
+
+    @staticmethod
+    def forward(ctx, pad: int, *parts: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        first = parts[0]
+        b, _, h, w = first.shape
+        channels = [p.shape[1] for p in parts]
+        out = torch.empty(
+            (b, sum(channels), h, w + 2 * pad), dtype=first.dtype, device=first.device
+        ).contiguous(memory_format=_memory_format_of(first))
+        c = 0
+        for p, n in zip(parts, channels, strict=True):
+            out[:, c : c + n, :, pad : pad + w] = p
+            out[:, c : c + n, :, :pad] = p[..., w - pad :]
+            out[:, c : c + n, :, w + pad :] = p[..., :pad]
+            c += n
+        ctx.meta = (pad, w, channels)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        pad, w, channels = ctx.meta
+        grads = []
+        c = 0
+        for n in channels:
+            g = grad[:, c : c + n]
+            gp = g[..., pad : pad + w].clone(memory_format=_memory_format_of(grad))
+            gp[..., w - pad :] += g[..., :pad]
+            gp[..., :pad] += g[..., w + pad :]
+            grads.append(gp)
+            c += n
+        return (None, *grads)
+
+
+def pad_cat(parts: list[torch.Tensor], pad: int) -> torch.Tensor:
+    """``torch.cat(parts, 1)`` padded circularly by ``pad`` columns on each side, in a single copy.
+
+    ``parts`` are ``[B, C_i, H, W]`` (views are fine) with ``pad <= W``; the result is
+    ``[B, sum C_i, H, W + 2 pad]`` in the first part's memory format, ready for
+    :meth:`WrapConv2d.forward_padded`.
+    """
+    return _PadCat.apply(pad, *parts)
+
+
 class WrapConv2d(nn.Conv2d):
     """2-D convolution with "same"-style padding that wraps around horizontally.
 
@@ -134,6 +179,10 @@ class WrapConv2d(nn.Conv2d):
         if not self.wrap or self.pad == 0:
             return super().forward(x)
         x = _circular_pad_width(x, self.pad, self.pad)
+        return F.conv2d(x, self.weight, self.bias, self.stride, (self.pad, 0))
+
+    def forward_padded(self, x: torch.Tensor) -> torch.Tensor:
+        """Convolve an input already padded circularly by ``self.pad`` columns (see :func:`pad_cat`)."""
         return F.conv2d(x, self.weight, self.bias, self.stride, (self.pad, 0))
 
     def extra_repr(self) -> str:

@@ -347,7 +347,7 @@ def _json_safe(value):
 def _evaluate(args: argparse.Namespace) -> int:
     import json
 
-    from .data.format import atomic_write_bytes
+    from .atomic import atomic_write_bytes
 
     if args.batch_size < 1:
         raise CylsfmError(f"--batch-size must be at least 1, got {args.batch_size}")

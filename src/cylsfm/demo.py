@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from .data.format import atomic_write_bytes, load_depth, load_image, save_png
+from .atomic import atomic_write_bytes
+from .data.format import load_depth, load_image, save_png
 from .data.splits import make_splits
 from .data.synthetic import generate_dataset
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 import io
 import math
 import os
-import tempfile
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from ..atomic import atomic_write_bytes
 from ..errors import CylsfmError
 from ..geometry import Camera, CameraError, load_camera, mat_to_tum, tum_to_mat
 
@@ -68,23 +68,7 @@ class DatasetWarning(UserWarning):
 
 
 # --------------------------------------------------------------------------------------- writing
-def atomic_write_bytes(path: PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically: a temporary file in the same directory, then ``os.replace``.
-
-    Readers never see a partly written file; the parent directory is created when missing.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
+# atomic_write_bytes (re-exported here for the data tools) lives in cylsfm.atomic
 def save_png(path: PathLike, image: np.ndarray, compress_level: int = 6) -> None:
     """Write a ``uint8`` image ``[H,W,3]`` (RGB) or ``[H,W]`` (grey) as PNG, atomically."""
     image = np.asarray(image)

@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, ClassVar
@@ -29,6 +28,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
+from ..atomic import atomic_write_bytes
 from ..errors import CylsfmError
 
 Param = float | Tensor
@@ -125,6 +125,13 @@ class Camera:
         """``(width, height)`` in pixels."""
         return (int(self.width), int(self.height))
 
+    def _full_turn(self) -> bool:
+        """``fx * 2 pi == width`` (relative tolerance 1e-4): the columns span exactly one turn of azimuth."""
+        fx = self.fx
+        if isinstance(fx, Tensor):
+            return bool(((fx * 2 * math.pi - self.width).abs() <= _FULL_TURN_RTOL * self.width).all())
+        return abs(fx * 2 * math.pi - self.width) <= _FULL_TURN_RTOL * self.width
+
     def pixel_grid(
         self, batch: int = 1, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
     ) -> Tensor:
@@ -214,16 +221,7 @@ class Camera:
 
     def to_json(self, path: str | os.PathLike[str]) -> None:
         """Write ``camera.json`` atomically (temporary file + rename)."""
-        path = Path(path)
-        text = json.dumps(self.to_dict(), indent=2) + "\n"
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "w") as fh:
-                fh.write(text)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        atomic_write_bytes(path, (json.dumps(self.to_dict(), indent=2) + "\n").encode())
 
     @classmethod
     def from_json(cls, path: str | os.PathLike[str]) -> Camera:
@@ -276,6 +274,10 @@ class CylindricalCamera(Camera):
 
     model: ClassVar[str] = "cylindrical"
 
+    @property
+    def wraps(self) -> bool:
+        return self._full_turn()
+
     @classmethod
     def full(cls, width: int, height: int, vfov_h: float = 1.0) -> CylindricalCamera:
         """A full 360 degree panorama whose rows span ``h`` in ``[-vfov_h, vfov_h]`` (edge to edge).
@@ -291,13 +293,6 @@ class CylindricalCamera(Camera):
             fy=height / (2 * vfov_h),
             cy=(height - 1) / 2,
         )
-
-    @property
-    def wraps(self) -> bool:
-        fx = self.fx
-        if isinstance(fx, Tensor):
-            return bool(((fx * 2 * math.pi - self.width).abs() <= _FULL_TURN_RTOL * self.width).all())
-        return abs(fx * 2 * math.pi - self.width) <= _FULL_TURN_RTOL * self.width
 
     @property
     def hfov_deg(self) -> float:
@@ -418,6 +413,10 @@ class EquirectangularCamera(Camera):
 
     model: ClassVar[str] = "equirectangular"
 
+    @property
+    def wraps(self) -> bool:
+        return self._full_turn()
+
     @classmethod
     def full(cls, width: int, height: int) -> EquirectangularCamera:
         """The whole sphere in a ``width x height`` image (usually ``width == 2 * height``)."""
@@ -429,13 +428,6 @@ class EquirectangularCamera(Camera):
             fy=height / math.pi,
             cy=height / 2 - 0.5,
         )
-
-    @property
-    def wraps(self) -> bool:
-        fx = self.fx
-        if isinstance(fx, Tensor):
-            return bool(((fx * 2 * math.pi - self.width).abs() <= _FULL_TURN_RTOL * self.width).all())
-        return abs(fx * 2 * math.pi - self.width) <= _FULL_TURN_RTOL * self.width
 
     def project(self, points: Tensor) -> Tensor:
         _check_image_tensor(points, 3, "points")

@@ -236,7 +236,7 @@ def load_config(path: str | os.PathLike[str]) -> TrainConfig:
 
 def save_config(cfg: TrainConfig, path: str | os.PathLike[str]) -> None:
     """Write the resolved configuration as YAML, atomically."""
-    from ..data.format import atomic_write_bytes
+    from ..atomic import atomic_write_bytes
 
     text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False)
     atomic_write_bytes(Path(path), text.encode())

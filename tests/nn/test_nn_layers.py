@@ -218,3 +218,76 @@ def test_pad_cat_equals_cat_then_circular_pad_with_gradients() -> None:
         torch.testing.assert_close(gb, rb)
     cl = pad_cat([a.contiguous(memory_format=torch.channels_last), b], 1)
     assert cl.is_contiguous(memory_format=torch.channels_last)
+
+
+def test_pad_cat_of_windows_and_memory_format() -> None:
+    from cylsfm.nn.layers import pad_cat
+
+    torch.manual_seed(0)
+    # a feature kept padded by 2 columns (its centre is the window) and an up-convolution output
+    padded = torch.randn(2, 4, 5, 12).contiguous(memory_format=torch.channels_last).requires_grad_(True)
+    up = torch.randn(2, 3, 5, 8).contiguous(memory_format=torch.channels_last).requires_grad_(True)
+    out = pad_cat([up, padded], 1, width=8, starts=[0, 2], memory_format=torch.channels_last)
+    ref = torch.cat([up, padded[..., 2:10]], 1)
+    ref = torch.cat([ref[..., -1:], ref, ref[..., :1]], -1)
+    torch.testing.assert_close(out, ref)
+    assert out.is_contiguous(memory_format=torch.channels_last)
+    g = torch.randn_like(ref)
+    got = torch.autograd.grad((out * g).sum(), (up, padded))
+    want = torch.autograd.grad((ref * g).sum(), (up, padded))
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b)
+    assert got[1][..., :2].abs().sum() == 0 and got[1][..., 10:].abs().sum() == 0
+    with pytest.raises(ValueError, match="padding"):
+        pad_cat([up], 9)
+
+
+def test_memory_format_of_a_column_window() -> None:
+    from cylsfm.nn.layers import _memory_format_of
+
+    x = torch.randn(2, 4, 5, 12)
+    assert _memory_format_of(x) == torch.contiguous_format
+    assert _memory_format_of(x[..., 1:11]) == torch.contiguous_format
+    cl = x.contiguous(memory_format=torch.channels_last)
+    assert _memory_format_of(cl) == torch.channels_last
+    # a window is contiguous in neither format but laid out channels-last
+    assert _memory_format_of(cl[..., 1:11]) == torch.channels_last
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize(("pad", "window"), [(0, None), (2, None), (1, (4, 2, 8)), (3, (5, 0, 6)), (9, None)])
+def test_relu_pad_equals_relu_then_pad(channels_last: bool, pad: int, window) -> None:
+    from cylsfm.nn.layers import relu_pad
+
+    torch.manual_seed(0)
+    y = torch.randn(2, 3, 5, 8 if window is None else 11)
+    if channels_last:
+        y = y.contiguous(memory_format=torch.channels_last)
+    y.requires_grad_(True)
+    out = relu_pad(y, pad, window)
+    h, s, w = window if window is not None else (5, 0, 8)
+    ref = torch.relu(y[..., :h, s : s + w])
+    ref = (
+        torch.cat([ref] * 3, -1)[..., w - pad : 2 * w + pad]
+        if pad <= w
+        else torch.cat([ref] * 5, -1)[..., 2 * w - pad : 3 * w + pad]
+    )
+    torch.testing.assert_close(out, ref)
+    if channels_last and pad <= w:
+        assert out.is_contiguous(memory_format=torch.channels_last)
+    g = torch.randn_like(ref)
+    (got,) = torch.autograd.grad((out * g).sum(), y)
+    (want,) = torch.autograd.grad((ref * g).sum(), y)
+    torch.testing.assert_close(got, want)
+
+
+def test_conv_transpose_forward_padded_equals_forward() -> None:
+    torch.manual_seed(0)
+    up = WrapConvTranspose2d(4, 3)
+    x = torch.randn(2, 4, 5, 8)
+    for pad in (1, 2):
+        xp = torch.cat([x[..., -pad:], x, x[..., :pad]], -1)
+        out, start = up.forward_padded(xp, pad)
+        torch.testing.assert_close(out[..., start : start + 16], up(x))
+    with pytest.raises(ValueError, match="padding"):
+        up.forward_padded(x, 0)

@@ -244,3 +244,48 @@ def test_equivariant_pose_head_rotates_with_a_yaw_roll() -> None:
         p0, _ = mean_net(target, sources)
         p1, _ = mean_net(torch.roll(target, 128, -1), torch.roll(sources, 128, -1))
         torch.testing.assert_close(p0, p1)
+
+
+def _grads(outputs: list[torch.Tensor], inputs: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(1)
+    loss = sum((o * torch.randn(o.shape, generator=g, dtype=o.dtype)).sum() for o in outputs)
+    return torch.autograd.grad(loss, inputs)
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize(("width", "height"), [(256, 64), (128, 33)])
+def test_dispnet_padded_path_equals_layer_by_layer(channels_last: bool, width: int, height: int) -> None:
+    """The wrapped fast path (features kept padded) computes exactly what the wrap-aware layers do."""
+    torch.manual_seed(0)
+    fmt = torch.channels_last if channels_last else torch.contiguous_format
+    net = DispNet(wrap=True).double().to(memory_format=fmt)
+    x = (
+        torch.rand(2, 3, height, width, dtype=torch.float64)
+        .contiguous(memory_format=fmt)
+        .requires_grad_(True)
+    )
+    params = list(net.parameters())
+    fast = net(x)
+    slow = net._forward_modules(x)
+    for a, b in zip(fast, slow, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    for a, b in zip(_grads(fast, [x, *params]), _grads(slow, [x, *params]), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("explainability", [True, False])
+@pytest.mark.parametrize(("width", "height"), [(256, 64), (128, 33)])
+def test_posenet_padded_path_equals_layer_by_layer(explainability: bool, width: int, height: int) -> None:
+    torch.manual_seed(0)
+    net = PoseExpNet(2, explainability, wrap=True).double().to(memory_format=torch.channels_last)
+    t = torch.rand(2, 3, height, width, dtype=torch.float64).requires_grad_(True)
+    s = torch.rand(2, 2, 3, height, width, dtype=torch.float64)
+    feats, masks = net._forward_wrapped(t, s)
+    feats_ref, masks_ref = net._forward_modules(t, s)
+    fast = [feats[-1], *(masks or [])]
+    slow = [feats_ref[-1], *(masks_ref or [])]
+    for a, b in zip(fast, slow, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    params = [p for p in net.parameters() if p is not net.pose_pred.weight and p is not net.pose_pred.bias]
+    for a, b in zip(_grads(fast, [t, *params]), _grads(slow, [t, *params]), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)

@@ -5,7 +5,15 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from cylsfm.nn.layers import WrapConv2d, WrapConvTranspose2d, crop_like, pad_cat, wrap_upsample2x
+from cylsfm.nn.layers import (
+    WrapConv2d,
+    WrapConvTranspose2d,
+    _memory_format_of,
+    crop_like,
+    pad_cat,
+    relu_pad,
+    wrap_upsample2x,
+)
 
 __all__ = ["MIN_HEIGHT", "MIN_WIDTH", "TOTAL_STRIDE", "DispNet", "check_input_size"]
 
@@ -167,6 +175,12 @@ class DispNet(nn.Module):
             ValueError: for a wrongly shaped input or an unsupported size (see :meth:`check_input_size`).
         """
         _check_image(image, "image", self.wrap)
+        if self.wrap:
+            return self._forward_wrapped(image)
+        return self._forward_modules(image)
+
+    def _forward_modules(self, image: torch.Tensor) -> list[torch.Tensor]:
+        """Layer by layer through the modules (each wrap-aware layer pads its own input)."""
         x = (image - 0.5) / 0.5
         feats = []
         for stage in self.encoder:
@@ -186,12 +200,56 @@ class DispNet(nn.Module):
                 parts.append(skip)
             if disps:
                 parts.append(crop_like(wrap_upsample2x(disps[-1], self.wrap), x))
-            conv = iconv[0]
-            if self.wrap and conv.wrap and conv.pad and conv.pad <= x.shape[-1]:
-                # concatenate and pad for the wrapped convolution in one copy
-                x = iconv[1](conv.forward_padded(pad_cat(parts, conv.pad)))
-            else:
-                x = iconv(torch.cat(parts, dim=1))
+            x = iconv(torch.cat(parts, dim=1))
             if i >= 3:
                 disps.append(self.disp_heads[i - 3](x))
+        return disps[::-1]
+
+    def _forward_wrapped(self, image: torch.Tensor) -> list[torch.Tensor]:
+        """The same computation with every feature map kept padded for the convolution that reads it.
+
+        Each ReLU writes its output straight into a buffer padded circularly by the columns the next
+        convolution needs (:func:`relu_pad`), and each decoder concatenation pads while it copies
+        (:func:`pad_cat`), so the wrap-around costs no pass over the data beyond what the unwrapped
+        network does.  Every feature is a pair (padded tensor, padding).
+        """
+        fmt = _memory_format_of(self.encoder[0][0][0].weight)
+        up_pad = max(max(u[0].wrap_left, u[0].wrap_right) for u in self.upconvs)
+        first = self.encoder[0][0][0]
+        xp = pad_cat([image], first.pad, memory_format=fmt).sub_(0.5).mul_(2.0)
+        feats: list[tuple[torch.Tensor, int]] = []
+        for j, stage in enumerate(self.encoder):
+            conv_a, conv_b = stage[0][0], stage[1][0]
+            xp = relu_pad(conv_a.forward_padded(xp), conv_b.pad)
+            next_pad = self.encoder[j + 1][0][0].pad if j + 1 < len(self.encoder) else up_pad
+            xp = relu_pad(conv_b.forward_padded(xp), next_pad)
+            feats.append((xp, next_pad))
+        skips: list[tuple[torch.Tensor, int] | None] = [*feats[:-1][::-1], None]
+        ref_sizes = [(f.shape[-2], f.shape[-1] - 2 * p) for f, p in feats[:-1][::-1]]
+        ref_sizes.append((image.shape[-2], image.shape[-1]))
+
+        disps: list[torch.Tensor] = []
+        xp, pad = feats[-1]
+        for i, (upconv, iconv) in enumerate(zip(self.upconvs, self.iconvs, strict=True)):
+            h, w = ref_sizes[i]
+            out, start = upconv[0].forward_padded(xp, pad)
+            parts, starts = [relu_pad(out, 0, (h, start, w))], [0]
+            skip = skips[i]
+            if skip is not None:
+                parts.append(skip[0])
+                starts.append(skip[1])
+            if disps:
+                parts.append(wrap_upsample2x(disps[-1], True)[..., :h, :])
+                starts.append(0)
+            conv = iconv[0]
+            y = conv.forward_padded(pad_cat(parts, conv.pad, w, starts, fmt))
+            pad = up_pad if i + 1 < len(self.upconvs) else 0
+            if i >= 3:
+                pad = max(pad, self.disp_heads[i - 3].conv.pad)
+            xp = relu_pad(y, pad)
+            if i >= 3:
+                head = self.disp_heads[i - 3]
+                extra = pad - head.conv.pad
+                hp = xp[..., extra : xp.shape[-1] - extra] if extra else xp
+                disps.append(head.alpha * torch.sigmoid(head.conv.forward_padded(hp)) + head.beta)
         return disps[::-1]

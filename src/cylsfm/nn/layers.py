@@ -22,12 +22,26 @@ from torch import nn
 
 from ..geometry import resize_image
 
-__all__ = ["WrapConv2d", "WrapConvTranspose2d", "crop_like", "pad_cat", "set_wrap", "wrap_upsample2x"]
+__all__ = [
+    "WrapConv2d",
+    "WrapConvTranspose2d",
+    "crop_like",
+    "pad_cat",
+    "relu_pad",
+    "set_wrap",
+    "wrap_upsample2x",
+]
 
 
 def _memory_format_of(x: torch.Tensor) -> torch.memory_format:
-    """``torch.channels_last`` if ``x`` (4-D) is stored channels-last, else ``torch.contiguous_format``."""
-    if x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous():
+    """The memory format ``x`` (4-D, possibly a view such as a column window) is laid out in.
+
+    ``torch.channels_last`` when the channel stride is smaller than the width stride (channels innermost),
+    else ``torch.contiguous_format``.  Judged from the strides, not from contiguity: a column window of a
+    channels-last tensor is contiguous in neither format but must be copied as channels-last (a copy
+    between the two layouts is a transpose, many times slower than a plain copy).
+    """
+    if x.dim() == 4 and x.shape[1] > 1 and x.stride(1) < x.stride(3):
         return torch.channels_last
     return torch.contiguous_format
 
@@ -90,49 +104,149 @@ def _circular_pad_width(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
     return out.contiguous(memory_format=_memory_format_of(x))
 
 
+def _zero_outside(g: torch.Tensor, height: int, start: int, width: int) -> None:
+    """Zero ``g`` ``[..., H, W]`` outside rows ``[0, height)`` x columns ``[start, start + width)``."""
+    if height < g.shape[-2]:
+        g[..., height:, :].zero_()
+    if start:
+        g[..., :height, :start].zero_()
+    if start + width < g.shape[-1]:
+        g[..., :height, start + width :].zero_()
+
+
 class _PadCat(torch.autograd.Function):
-    """Channel concatenation and circular width padding in one copy (and one copy back)."""
+    """Channel concatenation of column windows and circular width padding in one copy (and one copy back)."""
 
     @staticmethod
-    def forward(ctx, pad: int, *parts: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def forward(  # type: ignore[override]
+        ctx, pad: int, width: int, starts: tuple[int, ...], fmt: torch.memory_format, *parts: torch.Tensor
+    ) -> torch.Tensor:
         first = parts[0]
-        b, _, h, w = first.shape
+        b, h = first.shape[0], first.shape[-2]
+        w = width
         channels = [p.shape[1] for p in parts]
         out = torch.empty(
-            (b, sum(channels), h, w + 2 * pad), dtype=first.dtype, device=first.device
-        ).contiguous(memory_format=_memory_format_of(first))
+            (b, sum(channels), h, w + 2 * pad), dtype=first.dtype, device=first.device, memory_format=fmt
+        )
         c = 0
-        for p, n in zip(parts, channels, strict=True):
-            out[:, c : c + n, :, pad : pad + w] = p
-            out[:, c : c + n, :, :pad] = p[..., w - pad :]
-            out[:, c : c + n, :, w + pad :] = p[..., :pad]
+        for p, n, s in zip(parts, channels, starts, strict=True):
+            win = p[..., s : s + w]
+            out[:, c : c + n, :, pad : pad + w] = win
+            if pad:
+                out[:, c : c + n, :, :pad] = win[..., w - pad :]
+                out[:, c : c + n, :, w + pad :] = win[..., :pad]
             c += n
-        ctx.meta = (pad, w, channels)
+        ctx.meta = (pad, w, channels, starts, [p.shape for p in parts], [_memory_format_of(p) for p in parts])
         return out
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
-        pad, w, channels = ctx.meta
+        pad, w, channels, starts, shapes, fmts = ctx.meta
         grads = []
         c = 0
-        for n in channels:
+        for n, s, shape, fmt in zip(channels, starts, shapes, fmts, strict=True):
             g = grad[:, c : c + n]
-            gp = g[..., pad : pad + w].clone(memory_format=_memory_format_of(grad))
-            gp[..., w - pad :] += g[..., :pad]
-            gp[..., :pad] += g[..., w + pad :]
+            gp = torch.empty(shape, dtype=grad.dtype, device=grad.device, memory_format=fmt)
+            _zero_outside(gp, shape[-2], s, w)
+            win = gp[..., s : s + w]
+            win.copy_(g[..., pad : pad + w])
+            if pad:
+                win[..., w - pad :] += g[..., :pad]
+                win[..., :pad] += g[..., w + pad :]
             grads.append(gp)
             c += n
-        return (None, *grads)
+        return (None, None, None, None, *grads)
 
 
-def pad_cat(parts: list[torch.Tensor], pad: int) -> torch.Tensor:
-    """``torch.cat(parts, 1)`` padded circularly by ``pad`` columns on each side, in a single copy.
+def pad_cat(
+    parts: list[torch.Tensor],
+    pad: int,
+    width: int | None = None,
+    starts: list[int] | None = None,
+    memory_format: torch.memory_format | None = None,
+) -> torch.Tensor:
+    """``torch.cat`` of column windows along channels, padded circularly by ``pad`` columns, in one copy.
 
-    ``parts`` are ``[B, C_i, H, W]`` (views are fine) with ``pad <= W``; the result is
-    ``[B, sum C_i, H, W + 2 pad]`` in the first part's memory format, ready for
-    :meth:`WrapConv2d.forward_padded`.
+    Part ``i`` contributes its columns ``[starts[i], starts[i] + width)``, e.g. the unpadded centre of a
+    feature map kept padded for a convolution (``starts[i]`` = that padding).
+
+    Args:
+        parts: ``[B, C_i, H, W_i]`` tensors (views are fine), all of the same ``B`` and ``H``, with
+            ``W_i >= starts[i] + width``.
+        pad: circular padding on each side, ``0 <= pad <= width``.
+        width: window width ``W``; default the first part's width minus its start.
+        starts: first column of each part's window; default all 0.
+        memory_format: layout of the result; default the first part's.
+
+    Returns:
+        ``[B, sum C_i, H, W + 2 pad]``, ready for :meth:`WrapConv2d.forward_padded`.  The gradient of
+        each part has the part's full shape (zero outside its window).
     """
-    return _PadCat.apply(pad, *parts)
+    starts_t = tuple(int(s) for s in starts) if starts is not None else (0,) * len(parts)
+    if width is None:
+        width = parts[0].shape[-1] - starts_t[0]
+    if not 0 <= pad <= width:
+        raise ValueError(f"pad_cat: padding {pad} must be in [0, width={width}]")
+    fmt = memory_format if memory_format is not None else _memory_format_of(parts[0])
+    return _PadCat.apply(pad, int(width), starts_t, fmt, *parts)
+
+
+class _ReLUPad(torch.autograd.Function):
+    """ReLU of a window of a tensor, padded circularly, in one copy (and one pass back)."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx, y: torch.Tensor, pad: int, height: int, start: int, width: int
+    ) -> torch.Tensor:
+        b, c = y.shape[:2]
+        fmt = _memory_format_of(y)
+        out = torch.empty((b, c, height, width + 2 * pad), dtype=y.dtype, device=y.device, memory_format=fmt)
+        torch.clamp_min(y[..., :height, start : start + width], 0, out=out[..., pad : pad + width])
+        if pad:
+            out[..., :pad] = out[..., width : width + pad]
+            out[..., width + pad :] = out[..., pad : 2 * pad]
+        ctx.save_for_backward(out)
+        ctx.meta = (pad, height, start, width, y.shape, fmt)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        (out,) = ctx.saved_tensors
+        pad, height, start, width, shape, fmt = ctx.meta
+        threshold_backward = torch.ops.aten.threshold_backward
+        gy = torch.empty(shape, dtype=grad.dtype, device=grad.device, memory_format=fmt)
+        _zero_outside(gy, height, start, width)
+        win = gy[..., :height, start : start + width]
+        threshold_backward.grad_input(
+            grad[..., pad : pad + width], out[..., pad : pad + width], 0, grad_input=win
+        )
+        if pad:
+            win[..., width - pad :] += threshold_backward(grad[..., :pad], out[..., :pad], 0)
+            win[..., :pad] += threshold_backward(grad[..., width + pad :], out[..., width + pad :], 0)
+        return gy, None, None, None, None
+
+
+def relu_pad(y: torch.Tensor, pad: int, window: tuple[int, int, int] | None = None) -> torch.Tensor:
+    """``relu`` of ``y`` (or of a window of it), padded circularly by ``pad`` columns, in one copy.
+
+    Replaces the in-place ReLU after a convolution when the next convolution wraps: the padding then
+    costs no extra pass over the feature map (see :meth:`WrapConv2d.forward_padded`).
+
+    Args:
+        y: ``[B, C, H, W]``, e.g. a convolution's output.
+        pad: columns copied circularly onto each side, ``>= 0``.
+        window: ``(height, start, width)``: use only rows ``[0, height)`` and columns
+            ``[start, start + width)`` of ``y`` (an up-convolution's output cropped to its skip
+            connection); default all of ``y``.
+
+    Returns:
+        ``[B, C, height, width + 2 pad]`` in ``y``'s memory format.  The gradient has ``y``'s full shape
+        (zero outside the window).
+    """
+    height, start, width = window if window is not None else (y.shape[-2], 0, y.shape[-1])
+    if pad > width:  # tiny feature maps: wrap around more than once
+        return _circular_pad_width(torch.relu(y[..., :height, start : start + width]), pad, pad)
+    return _ReLUPad.apply(y, int(pad), int(height), int(start), int(width))
 
 
 class WrapConv2d(nn.Conv2d):
@@ -259,6 +373,37 @@ class WrapConvTranspose2d(nn.ConvTranspose2d):
         out = super().forward(_circular_pad_width(x, self.wrap_left, self.wrap_right))
         start = s * self.wrap_left
         return out[..., start : start + s * width]
+
+    def forward_padded(self, xp: torch.Tensor, pad: int) -> tuple[torch.Tensor, int]:
+        """Up-convolve an input already padded circularly by ``pad`` columns on each side.
+
+        Args:
+            xp: ``[B, in_channels, H, W + 2 pad]`` with ``pad >= max(wrap_left, wrap_right)`` (1 for
+                the SfMLearner up-convolution), e.g. from :func:`relu_pad`.
+            pad: that padding.
+
+        Returns:
+            ``(out, start)``: the convolution's whole output ``[B, out_channels, s*H, s*(W + 2 pad)]``
+            and the first of its ``s*W`` columns that form the circular up-convolution of the centre
+            (equal to :meth:`forward` of the unpadded input); crop with ``out[..., start:start + s*W]``
+            or pass the window to :func:`relu_pad`.
+        """
+        if pad < self.wrap_left or pad < self.wrap_right:
+            raise ValueError(
+                f"forward_padded: padding {pad} is less than the {max(self.wrap_left, self.wrap_right)} "
+                "columns the up-convolution needs"
+            )
+        out = F.conv_transpose2d(
+            xp,
+            self.weight,
+            self.bias,
+            self.stride,
+            self.padding,
+            self.output_padding,
+            self.groups,
+            self.dilation,
+        )
+        return out, self.stride[1] * pad
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, wrap={self.wrap}"

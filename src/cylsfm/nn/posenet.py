@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 from cylsfm.nn.dispnet import _check_image, check_input_size, init_weights
-from cylsfm.nn.layers import WrapConv2d, WrapConvTranspose2d, crop_like
+from cylsfm.nn.layers import WrapConv2d, WrapConvTranspose2d, _memory_format_of, crop_like, pad_cat, relu_pad
 
 __all__ = ["PoseExpNet"]
 
@@ -124,22 +124,30 @@ class PoseExpNet(nn.Module):
                 f"sources must have shape [B, S, 3, H, W] = {[b, s, 3, *target.shape[-2:]]}, "
                 f"got {list(sources.shape)}"
             )
-        x = torch.cat([target, sources.flatten(1, 2)], dim=1)
-        x = (x - 0.5) / 0.5
-
-        feats = []
-        for stage in self.encoder:
-            x = stage(x)
-            feats.append(x)
+        if self.wrap:
+            feats, masks = self._forward_wrapped(target, sources)
+        else:
+            feats, masks = self._forward_modules(target, sources)
 
         raw = self.pose_pred(feats[-1])  # [B, 6S, H_f, W_f]
         if self.pose_head == "mean":
             pose = 0.01 * raw.mean(dim=(2, 3)).view(b, s, 6)
         else:
             pose = 0.01 * _rotate_columns_and_average(raw.mean(dim=2).view(b, s, 2, 3, raw.shape[-1]))
+        return pose, masks
 
+    def _forward_modules(
+        self, target: torch.Tensor, sources: torch.Tensor
+    ) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
+        """Encoder features and masks, layer by layer through the modules."""
+        x = torch.cat([target, sources.flatten(1, 2)], dim=1)
+        x = (x - 0.5) / 0.5
+        feats = []
+        for stage in self.encoder:
+            x = stage(x)
+            feats.append(x)
         if self.upconvs is None or self.mask_heads is None:
-            return pose, None
+            return feats, None
         refs = [feats[3], feats[2], feats[1], feats[0], target]  # conv4, conv3, conv2, conv1, input
         masks: list[torch.Tensor] = []
         x = feats[4]
@@ -147,7 +155,51 @@ class PoseExpNet(nn.Module):
             x = crop_like(upconv(x), refs[i])
             if i >= 1:
                 masks.append(torch.sigmoid(self.mask_heads[i - 1](x)))
-        return pose, masks[::-1]
+        return feats, masks[::-1]
+
+    def _forward_wrapped(
+        self, target: torch.Tensor, sources: torch.Tensor
+    ) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
+        """The same with every feature map kept padded for the convolution that reads it (as in DispNet)."""
+        first = self.encoder[0][0]
+        fmt = _memory_format_of(first.weight)
+        xp = pad_cat([target, *sources.unbind(1)], first.pad, memory_format=fmt).sub_(0.5).mul_(2.0)
+        decoder = self.upconvs is not None and self.mask_heads is not None
+        up_pad = max(max(u[0].wrap_left, u[0].wrap_right) for u in self.upconvs) if self.upconvs else 0
+        padded: list[tuple[torch.Tensor, int]] = []
+        for j, stage in enumerate(self.encoder):
+            if j + 1 < len(self.encoder):
+                pad = self.encoder[j + 1][0].pad
+                if j == 4 and decoder:
+                    pad = max(pad, up_pad)
+            else:
+                pad = self.pose_pred.pad
+            y = stage[0].forward_padded(_narrow(xp, padded[-1][1] - stage[0].pad) if padded else xp)
+            xp = relu_pad(y, pad)
+            padded.append((xp, pad))
+        feats = [_narrow(f, p) for f, p in padded]
+        if not decoder:
+            return feats, None
+        assert self.upconvs is not None and self.mask_heads is not None
+        refs = [feats[3], feats[2], feats[1], feats[0], target]
+        masks: list[torch.Tensor] = []
+        xp, pad = padded[4]
+        for i, upconv in enumerate(self.upconvs):
+            h, w = refs[i].shape[-2:]
+            out, start = upconv[0].forward_padded(xp, pad)
+            pad = up_pad if i + 1 < len(self.upconvs) else 0
+            if i >= 1:
+                pad = max(pad, self.mask_heads[i - 1].pad)
+            xp = relu_pad(out, pad, (h, start, w))
+            if i >= 1:
+                head = self.mask_heads[i - 1]
+                masks.append(torch.sigmoid(head.forward_padded(_narrow(xp, pad - head.pad))))
+        return feats, masks[::-1]
+
+
+def _narrow(xp: torch.Tensor, extra: int) -> torch.Tensor:
+    """Drop ``extra`` columns on each side of ``xp`` ``[..., W]`` (a view)."""
+    return xp[..., extra : xp.shape[-1] - extra] if extra else xp
 
 
 def _rotate_columns_and_average(cols: torch.Tensor) -> torch.Tensor:

@@ -49,3 +49,14 @@ def test_bad_configurations_are_clear_errors(tmp_path):
         preset("nope")
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "missing.yaml")
+
+
+def test_plain_photometric_warm_up_schedule():
+    cfg = apply_overrides(preset("improved"), ["plain_photometric_steps=3"])
+    plain, later = cfg.loss_at(2), cfg.loss_at(3)
+    assert later == cfg.loss
+    assert (plain.ssim_weight, plain.min_reprojection, plain.automask, plain.full_resolution) == (0, 0, 0, 0)
+    assert plain.image_smooth_weight == cfg.loss.image_smooth_weight  # smoothness is not part of the warm-up
+    assert preset("improved").loss_at(0) == preset("improved").loss
+    with pytest.raises(ConfigError, match="plain_photometric_steps"):
+        apply_overrides(preset("improved"), ["plain_photometric_steps=-1"])

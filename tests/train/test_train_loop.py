@@ -139,3 +139,20 @@ def test_data_parallel_with_two_cpu_processes(tiny_data, tmp_path):
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 0, out.stderr[-3000:]
     assert load_checkpoint(run)["step"] == 2
+
+
+def test_plain_photometric_warm_up_is_used_by_the_trainer(tiny_data, tmp_path):
+    """During the warm-up the trainer's loss is the plain one; after it, the configured one."""
+    trainer = Trainer(_cfg(tiny_data, max_steps=1, plain_photometric_steps=1), tmp_path / "run")
+    batch = next(iter(trainer._loader()))
+    plain_items = ["loss.ssim_weight=0", "loss.min_reprojection=false", "loss.automask=false"]
+    plain = Trainer(
+        apply_overrides(_cfg(tiny_data), [*plain_items, "loss.full_resolution=false"]), tmp_path / "plain"
+    )
+    plain.model.load_state_dict(trainer.model.state_dict())
+    warm, _, _ = trainer.compute_loss(batch)
+    ref, _, _ = plain.compute_loss(batch)
+    trainer.step = 1
+    after, _, _ = trainer.compute_loss(batch)
+    torch.testing.assert_close(warm, ref)
+    assert not torch.allclose(warm, after)

@@ -7,7 +7,7 @@ checkpoint alone rebuilds its networks and knows the image size and projection i
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -99,12 +99,19 @@ class TrainConfig:
     image_every: int = 500
     checkpoint_every: int = 2000  # also kept as step_NNNNNNN.pt
     latest_every: int = 200  # latest.pt, overwritten atomically
+    # For the first N steps the photometric term is the paper's plain one: L1 at each scale's own
+    # resolution, summed over the sources, without SSIM, minimum reprojection or auto-masking. Its wide
+    # basin lets the pose network learn turns before the per-pixel selections of the improved loss (which
+    # favour pixels that the current motion already explains) can lock in a motion without rotation.
+    plain_photometric_steps: int = 0
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
             raise ConfigError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.max_steps < 0:
             raise ConfigError(f"max_steps must be >= 0, got {self.max_steps}")
+        if self.plain_photometric_steps < 0:
+            raise ConfigError(f"plain_photometric_steps must be >= 0, got {self.plain_photometric_steps}")
         if self.data.seq_length < 2:
             raise ConfigError(f"data.seq_length must be >= 2, got {self.data.seq_length}")
         if not 0 < self.data.fov <= 360:
@@ -116,6 +123,14 @@ class TrainConfig:
             )
         if self.data.roll and self.data.fov < 360:
             raise ConfigError("data.roll needs full 360-degree panoramas (data.fov = 360)")
+
+    def loss_at(self, step: int) -> LossConfig:
+        """The loss configuration of training step ``step`` (0-based): plain photometric during warm-up."""
+        if step < self.plain_photometric_steps:
+            return replace(
+                self.loss, ssim_weight=0.0, min_reprojection=False, automask=False, full_resolution=False
+            )
+        return self.loss
 
     @property
     def wrap(self) -> bool:

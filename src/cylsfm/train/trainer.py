@@ -238,11 +238,12 @@ class Trainer:
             self.device.type, dtype=self.amp_dtype or torch.float32, enabled=self.amp_dtype is not None
         ):
             disps, pose_vec, masks = self.net(tgt, src)
+        loss_cfg = self.cfg.loss_at(self.step)
         disps = [d.float() for d in disps]
-        masks = [m.float() for m in masks] if masks is not None and self.cfg.loss.explain_weight > 0 else None
+        masks = [m.float() for m in masks] if masks is not None and loss_cfg.explain_weight > 0 else None
         poses = pose_vec_to_mat(pose_vec.float())
         sizes = [tuple(d.shape[-2:]) for d in disps]
-        photo_sizes = [tuple(tgt.shape[-2:])] * len(sizes) if self.cfg.loss.full_resolution else sizes
+        photo_sizes = [tuple(tgt.shape[-2:])] * len(sizes) if loss_cfg.full_resolution else sizes
         tgt32 = tgt.float().contiguous()
         out = view_synthesis_loss(
             tgt32,
@@ -250,7 +251,7 @@ class Trainer:
             disps,
             poses,
             cam,
-            self.cfg.loss,
+            loss_cfg,
             explainability=masks,
             static_mask=mask,
             wrap=self.cfg.wrap,

@@ -1,0 +1,92 @@
+"""Print the Markdown tables of RESULTS.md from the JSON files that ``cylsfm evaluate`` wrote.
+
+Usage: ``python experiments/tables.py RUN_DIR[:LABEL] ...`` where each RUN_DIR holds ``depth.json``,
+``pose.json`` and (optionally) ``pose_yaw.json``. The baselines are printed once, from the first run.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+
+
+def _load(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _row(label: str, values: list[str]) -> str:
+    return "| " + " | ".join([label, *values]) + " |"
+
+
+def depth_table(runs: list[tuple[str, Path]]) -> list[str]:
+    lines = [_row("", list(DEPTH_KEYS)), "|---" * (len(DEPTH_KEYS) + 1) + "|"]
+    base = None
+    for label, run in runs:
+        d = _load(run / "depth.json")
+        if d is None:
+            continue
+        base = base or d["baselines"]
+        lines.append(_row(label, [f"{d[k]:.4f}" for k in DEPTH_KEYS]))
+    if base:
+        for name, b in base.items():
+            lines.append(_row(name.replace("_", "-") + " baseline", [f"{b[k]:.4f}" for k in DEPTH_KEYS]))
+        lines.append("")
+        for label, run in runs:
+            d = _load(run / "depth.json")
+            if d is not None:
+                c, p = base["constant"]["abs_rel"], base["per_row"]["abs_rel"]
+                lines.append(
+                    f"{label}: abs_rel {d['abs_rel'] / c:.3f}x constant, {d['abs_rel'] / p:.3f}x per-row"
+                )
+    return lines
+
+
+def pose_table(runs: list[tuple[str, Path]], name: str) -> list[str]:
+    keys = ("ate_mean", "ate_std", "ape_rmse", "rpe_trans_rmse", "rpe_rot_deg_rmse")
+    lines = [_row("", list(keys)), "|---" * (len(keys) + 1) + "|"]
+    base = None
+    for label, run in runs:
+        d = _load(run / name)
+        if d is None:
+            continue
+        base = base or d["baselines"]
+        lines.append(_row(label, [f"{d[k]:.4f}" for k in keys]))
+    if base:
+        for bname, b in base.items():
+            lines.append(_row(bname.replace("_", " "), [f"{b[k]:.4f}" if k in b else "-" for k in keys]))
+    return lines
+
+
+def per_sequence(runs: list[tuple[str, Path]]) -> list[str]:
+    lines = []
+    for label, run in runs:
+        d = _load(run / "pose.json")
+        if d is None:
+            continue
+        parts = []
+        for seq, s in sorted(d.get("sequences", {}).items()):
+            parts.append(f"{seq} {s['model']['ape_rmse']:.2f} (cv {s['constant_velocity']['ape_rmse']:.2f})")
+        lines.append(f"{label} APE rmse per sequence: " + ", ".join(parts))
+    return lines
+
+
+def main(argv: list[str]) -> None:
+    runs = []
+    for arg in argv:
+        path, _, label = arg.partition(":")
+        runs.append((label or Path(path).name, Path(path)))
+    for title, lines in (
+        ("depth", depth_table(runs)),
+        ("pose", pose_table(runs, "pose.json")),
+        ("pose, test rides rolled by random yaws", pose_table(runs, "pose_yaw.json")),
+        ("per sequence", per_sequence(runs)),
+    ):
+        print(f"## {title}\n")
+        print("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -44,6 +44,24 @@ def depth_table(runs: list[tuple[str, Path]]) -> list[str]:
     return lines
 
 
+def seam_table(runs: list[tuple[str, Path]]) -> list[str]:
+    """Depth next to the seam of the panoramas (``depth.json``'s ``seam`` entries)."""
+    lines = [_row("", list(DEPTH_KEYS)), "|---" * (len(DEPTH_KEYS) + 1) + "|"]
+    base = None
+    for label, run in runs:
+        d = _load(run / "depth.json")
+        if d is None or not d.get("seam"):
+            continue
+        base = base or d["baselines"]
+        lines.append(_row(label, [f"{d['seam'][k]:.4f}" for k in DEPTH_KEYS]))
+    for name, b in (base or {}).items():
+        if b and b.get("seam"):
+            lines.append(
+                _row(name.replace("_", "-") + " baseline", [f"{b['seam'][k]:.4f}" for k in DEPTH_KEYS])
+            )
+    return lines
+
+
 def pose_table(runs: list[tuple[str, Path]], name: str) -> list[str]:
     keys = ("ate_mean", "ate_std", "ape_rmse", "rpe_trans_rmse", "rpe_rot_deg_rmse")
     lines = [_row("", list(keys)), "|---" * (len(keys) + 1) + "|"]
@@ -80,6 +98,7 @@ def main(argv: list[str]) -> None:
         runs.append((label or Path(path).name, Path(path)))
     for title, lines in (
         ("depth", depth_table(runs)),
+        ("depth next to the seam", seam_table(runs)),
         ("pose", pose_table(runs, "pose.json")),
         ("pose, test rides rolled by random yaws", pose_table(runs, "pose_yaw.json")),
         ("per sequence", per_sequence(runs)),

@@ -316,6 +316,12 @@ def _evaluate_args(p: argparse.ArgumentParser) -> None:
     depth.add_argument(
         "--no-median-scaling", action="store_true", help="score the model's depth as it is (metric methods)"
     )
+    depth.add_argument(
+        "--seam-degrees",
+        type=float,
+        default=22.5,
+        help="also score full panoramas within this azimuth of the seam, at each side (default 22.5; 0: off)",
+    )
     pose.add_argument("--snippet", type=int, default=5, help="frames per ATE snippet (default 5)")
     pose.add_argument(
         "--yaw-roll",
@@ -364,6 +370,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             raise CylsfmError(
                 f"need 0 < --min-depth < --max-depth, got {args.min_depth} and {args.max_depth}"
             )
+        if not 0 <= args.seam_degrees <= 180:
+            raise CylsfmError(f"--seam-degrees must be in [0, 180], got {args.seam_degrees}")
         result = evaluate_depth(
             source if args.checkpoint else args.predictions,
             args.data,
@@ -375,6 +383,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             median_scaling=not args.no_median_scaling,
             batch_size=args.batch_size,
             progress=progress,
+            seam_fraction=2 * args.seam_degrees / 360.0,
         )
         print(format_depth_table(result))
         report = depth_json(result)

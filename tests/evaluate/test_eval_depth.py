@@ -14,6 +14,7 @@ from cylsfm.cli import main
 from cylsfm.data import DatasetError, SequenceWriter, make_splits, scan_dataset
 from cylsfm.evaluate.depth import (
     DEPTH_METRICS,
+    DepthAccumulator,
     RowPrior,
     depth_errors,
     evaluate_depth,
@@ -126,6 +127,27 @@ def test_row_prior_histogram_median_and_resampling():
     assert RowPrior().medians() is None
 
 
+def test_seam_columns_scored_with_the_whole_image_scale():
+    gt = np.full((4, 16), 10.0)
+    pred = np.full((4, 16), 5.0)
+    pred[:, [0, 15]] = 10.0  # wrong by 2x at the seam (after scaling by the whole image's median: 2)
+    acc = DepthAccumulator(seam_fraction=0.125)  # 1 column at each side of 16
+    assert acc.seam_columns(16) == 1 and acc.seam_columns(256) == 16
+    assert acc.add(gt, pred, seam=True) == pytest.approx(2.0)
+    r = acc.result()
+    assert r["seam"]["abs_rel"] == pytest.approx(1.0) and r["seam"]["a1"] == 0 and r["seam"]["n_images"] == 1
+    assert r["abs_rel"] == pytest.approx(2 / 16)
+    # masked-out seam pixels do not count; images that are not full panoramas have no seam
+    gt2 = gt.copy()
+    gt2[:, [0, 15]] = 0
+    acc.add(gt2, pred, seam=True)
+    acc.add(gt, pred, seam=False)
+    assert acc.result()["seam"]["n_images"] == 1
+    assert DepthAccumulator().add(gt, pred, seam=True) and DepthAccumulator().result()["seam"] is None
+    with pytest.raises(ValueError, match="seam_fraction"):
+        DepthAccumulator(seam_fraction=1.5)
+
+
 # --------------------------------------------------------------------------------------- toy dataset
 def _toy_dataset(root, train_depth, test_depth):
     """One sequence of 6 frames 16x8: frames 0-2 train with ``train_depth(i)``, 3-5 test."""
@@ -177,6 +199,16 @@ def test_per_row_prior_and_constant_baseline_on_toy_dataset(tmp_path):
     r = evaluate_depth(str(tmp_path / "perfect"), tmp_path, split="test")
     assert r["model"]["abs_rel"] == pytest.approx(0, abs=1e-7) and r["model"]["a1"] == 1
     assert r["per_row"]["abs_rel"] > 0.1
+    # the seam band of these full panoramas: 2 of 16 columns at each side with a quarter of the width
+    assert r["model"]["seam"]["abs_rel"] == pytest.approx(0, abs=1e-7)
+    r = evaluate_depth(str(const_pred), tmp_path, split="test", seam_fraction=0.25)
+    seam_cols = np.r_[0:2, 14:16]
+    want = DepthAccumulator(seam_fraction=0.25)
+    for t in test:
+        want.add(t, np.ones_like(t), seam=True)
+    assert r["constant"]["seam"]["abs_rel"] == pytest.approx(want.result()["seam"]["abs_rel"], rel=1e-6)
+    assert r["model"]["seam"]["n_images"] == 3 and len(seam_cols) == 2 * want.seam_columns(16)
+    assert evaluate_depth(str(const_pred), tmp_path, split="test", seam_fraction=0)["model"]["seam"] is None
 
 
 def test_missing_prediction_names_the_file(tmp_path):
@@ -228,8 +260,10 @@ def test_cli_depth_with_checkpoint_writes_json(synth, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "per_row" in text and "model/constant" in text and "model/per_row" in text
     data = json.loads(out.read_text())
-    keys = {*DEPTH_METRICS, "n_images", "scale_mean", "scale_std"}
+    keys = {*DEPTH_METRICS, "n_images", "scale_mean", "scale_std", "seam"}
     assert keys <= set(data) and set(data) == keys | {"baselines", "meta"}
+    assert "@seam" in text and set(data["seam"]) == {*DEPTH_METRICS, "n_images"}
+    assert data["meta"]["seam_fraction"] == pytest.approx(0.125)
     assert data["n_images"] == 6  # the test sequence's targets (frames 1..6)
     assert set(data["baselines"]) == {"constant", "per_row"}
     for name in ("constant", "per_row"):

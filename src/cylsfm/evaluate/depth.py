@@ -148,15 +148,29 @@ class DepthAccumulator:
         min_depth, max_depth: valid ground truth lies strictly between them (metres); scaled predictions
             are clamped to ``[min_depth, max_depth]``.
         median_scaling: multiply each prediction by ``median(gt) / median(pred)`` over its valid pixels.
+        seam_fraction: also score the columns next to the seam of full panoramas (images added with
+            ``seam=True``): this share of the width, half of it at each side (the columns that a network
+            without wrap-around sees next to its zero padding). The image's scale is the one of the whole
+            image. ``0`` turns it off.
     """
 
-    def __init__(self, min_depth: float = 1e-3, max_depth: float = 80.0, median_scaling: bool = True) -> None:
+    def __init__(
+        self,
+        min_depth: float = 1e-3,
+        max_depth: float = 80.0,
+        median_scaling: bool = True,
+        seam_fraction: float = 0.0,
+    ) -> None:
         if not 0 < min_depth < max_depth:
             raise ValueError(f"need 0 < min_depth < max_depth, got {min_depth} and {max_depth}")
+        if not 0 <= seam_fraction <= 1:
+            raise ValueError(f"seam_fraction must be in [0, 1], got {seam_fraction}")
         self.min_depth = float(min_depth)
         self.max_depth = float(max_depth)
         self.median_scaling = median_scaling
+        self.seam_fraction = float(seam_fraction)
         self.rows: list[dict[str, float]] = []
+        self.seam_rows: list[dict[str, float]] = []
         self.scales: list[float] = []
         self.skipped = 0
 
@@ -167,13 +181,21 @@ class DepthAccumulator:
             ok &= np.asarray(mask) > 0.5
         return ok
 
-    def add(self, gt: Any, pred: Any, mask: Any | None = None) -> float | None:
+    def seam_columns(self, width: int) -> int:
+        """Columns scored at each side of the seam of a panorama ``width`` wide (0: seam scoring off)."""
+        if self.seam_fraction <= 0:
+            return 0
+        return max(1, round(width * self.seam_fraction / 2))
+
+    def add(self, gt: Any, pred: Any, mask: Any | None = None, seam: bool = False) -> float | None:
         """Score one image.
 
         Args:
             gt: ground truth ``[H,W]`` (metres, 0 = unknown).
             pred: prediction ``[H,W]`` (same size; any positive units).
             mask: optional ``[H,W]``, pixels > 0.5 are used.
+            seam: the image is a full 360-degree panorama: also score its seam columns (see
+                ``seam_fraction``).
 
         Returns:
             The image's scale factor, or ``None`` when it has no valid pixel (it is then skipped and
@@ -202,18 +224,31 @@ class DepthAccumulator:
         pv = np.clip(pv * scale, self.min_depth, self.max_depth)
         self.rows.append(depth_errors(gv, pv))
         self.scales.append(scale)
+        k = self.seam_columns(g.shape[1]) if seam else 0
+        if k:
+            cols = np.nonzero(ok)[1]  # the columns of gv / pv, in the same (row-major) order
+            near = (cols < k) | (cols >= g.shape[1] - k)
+            if near.any():
+                self.seam_rows.append(depth_errors(gv[near], pv[near]))
         return scale
 
     def result(self) -> dict[str, float | int]:
         """The measures of :data:`DEPTH_METRICS` averaged over images, ``n_images``, ``scale_mean`` and
-        ``scale_std`` (population standard deviation) of the per-image scales. NaN when no image counted."""
+        ``scale_std`` (population standard deviation) of the per-image scales. NaN when no image counted.
+        ``"seam"``: the same measures over the seam columns only (averaged over the images that have some,
+        with their count as ``n_images``), or ``None`` when no seam was scored."""
         n = len(self.rows)
-        out: dict[str, float | int] = {
+        out: dict[str, Any] = {
             k: (float(np.mean([r[k] for r in self.rows])) if n else math.nan) for k in DEPTH_METRICS
         }
         out["n_images"] = n
         out["scale_mean"] = float(np.mean(self.scales)) if n else math.nan
         out["scale_std"] = float(np.std(self.scales)) if n else math.nan
+        out["seam"] = None
+        if self.seam_rows:
+            seam: dict[str, Any] = {k: float(np.mean([r[k] for r in self.seam_rows])) for k in DEPTH_METRICS}
+            seam["n_images"] = len(self.seam_rows)
+            out["seam"] = seam
         return out
 
 
@@ -426,6 +461,7 @@ def evaluate_depth(
     batch_size: int = 8,
     prior_max_frames: int | None = 2000,
     progress: bool | None = False,
+    seam_fraction: float = 0.125,
 ) -> dict[str, Any]:
     """Evaluate depth on a dataset's ground truth, with the ``constant`` and ``per_row`` baselines.
 
@@ -453,12 +489,16 @@ def evaluate_depth(
         batch_size: images per network call.
         prior_max_frames: at most this many prior frames, evenly spaced in dataset order (``None``: all).
         progress: show progress bars (``None``: when stderr is a terminal).
+        seam_fraction: on full 360-degree panoramas, also score the columns next to the seam (this share
+            of the width, half at each side; default 1/8: 22.5 degrees each side), with each image's scale
+            from the whole image. ``0``: off. Models trained on crops of the panorama have no seam.
 
     Returns:
         ``{"model": metrics, "constant": metrics, "per_row": metrics or None, "n_images": int,
         "n_without_gt": int, "prior_images": int, "source": str, "data": str, "split": ..., "split_name",
-        "prior_split", "min_depth", "max_depth", "median_scaling"}``; ``metrics`` as returned by
-        :func:`evaluate_depth_maps`. ``per_row`` is ``None`` when the prior frames have no ground truth.
+        "prior_split", "min_depth", "max_depth", "median_scaling", "seam_fraction"}``; ``metrics`` as
+        returned by :func:`evaluate_depth_maps`, with ``"seam"`` (see :meth:`DepthAccumulator.result`).
+        ``per_row`` is ``None`` when the prior frames have no ground truth.
 
     Raises:
         DatasetError: a dataset or prediction file is missing or invalid (named), or no evaluated frame
@@ -519,9 +559,9 @@ def evaluate_depth(
         bar.close()
 
         # ---- the evaluated frames, a batch at a time within a sequence
-        model = DepthAccumulator(min_depth, max_depth, median_scaling)
-        constant = DepthAccumulator(min_depth, max_depth, True)
-        per_row = DepthAccumulator(min_depth, max_depth, True)
+        model = DepthAccumulator(min_depth, max_depth, median_scaling, seam_fraction)
+        constant = DepthAccumulator(min_depth, max_depth, True, seam_fraction)
+        per_row = DepthAccumulator(min_depth, max_depth, True, seam_fraction)
         have_prior = prior.medians() is not None
         batches: list[list[tuple[SequenceInfo, int]]] = []
         for seq in sequences:
@@ -542,10 +582,12 @@ def evaluate_depth(
             seq = batch[0][0]
             camera = seq.camera
             mask = mask_of(seq)
+            seam = camera.wraps
             if predictor is not None:
                 depth = predictor.depth(_to_tensor(preds), camera)[:, 0].double().cpu().numpy()
                 win = predictor.window(camera)
                 if win is not None:
+                    seam = False  # a crop of the panorama: its sides are no seam
                     gts = [g[:, win[0] : win[1]] for g in gts]
                     mask = None if mask is None else mask[:, win[0] : win[1]]
                 preds = list(depth)
@@ -553,7 +595,7 @@ def evaluate_depth(
                 preds = [resize_depth(p, g.shape, wrap=camera.wraps) for p, g in zip(preds, gts, strict=True)]
             for (_, i), g, p in zip(batch, gts, preds, strict=True):
                 try:
-                    model.add(g, p, mask)
+                    model.add(g, p, mask, seam)
                 except ValueError as exc:
                     name = seq.images[i].stem
                     where = (
@@ -562,9 +604,9 @@ def evaluate_depth(
                         else str(pred_dirs[seq.name][0] / f"{name}.npy")
                     )
                     raise DatasetError(f"{where}: {exc}") from None
-                constant.add(g, np.ones_like(g), mask)
+                constant.add(g, np.ones_like(g), mask, seam)
                 if have_prior:
-                    per_row.add(g, prior.depth_map(*g.shape), mask)
+                    per_row.add(g, prior.depth_map(*g.shape), mask, seam)
             bar.update(len(batch))
         bar.close()
 
@@ -584,6 +626,7 @@ def evaluate_depth(
         "min_depth": float(min_depth),
         "max_depth": float(max_depth),
         "median_scaling": bool(median_scaling),
+        "seam_fraction": float(seam_fraction),
     }
 
 
@@ -591,16 +634,22 @@ def evaluate_depth(
 def _metrics_only(m: dict[str, Any] | None) -> dict[str, Any] | None:
     if m is None:
         return None
-    return {k: m[k] for k in (*DEPTH_METRICS, "n_images", "scale_mean", "scale_std")}
+    out = {k: m[k] for k in (*DEPTH_METRICS, "n_images", "scale_mean", "scale_std")}
+    out["seam"] = m.get("seam")
+    return out
 
 
 def depth_json(result: dict[str, Any]) -> dict[str, Any]:
     """The JSON layout of a result of :func:`evaluate_depth`::
 
     {"abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3", "n_images", "scale_mean", "scale_std",
+     "seam": {"abs_rel", ..., "a3", "n_images"} or null,
      "baselines": {"constant": {same keys}, "per_row": {same keys} or null},
      "meta": {"source", "data", "split", "split_name", "prior_split", "prior_images", "n_without_gt",
-              "min_depth", "max_depth", "median_scaling"}}
+              "min_depth", "max_depth", "median_scaling", "seam_fraction"}}
+
+    ``seam``: the measures over the columns next to the seam of full panoramas only (null when none was
+    scored).
     """
     out: dict[str, Any] = dict(_metrics_only(result["model"]) or {})
     out["baselines"] = {
@@ -620,7 +669,9 @@ def depth_json(result: dict[str, Any]) -> dict[str, Any]:
             "min_depth",
             "max_depth",
             "median_scaling",
+            "seam_fraction",
         )
+        if k in result
     }
     return out
 
@@ -659,4 +710,10 @@ def format_depth_table(result: dict[str, Any]) -> str:
             for k in DEPTH_METRICS
         ]
         lines.append(f"{'model/' + name:18}" + "".join(_fmt(r) for r in ratios))
+    seams = [(name, m["seam"]) for name, m in rows if m is not None and m.get("seam")]
+    if seams:
+        deg = 360.0 * result.get("seam_fraction", 0.0) / 2
+        lines.append(f"next to the seam ({deg:g} degrees each side, {seams[0][1]['n_images']} images):")
+        for name, m in seams:
+            lines.append(f"{name + ' @seam':18}" + "".join(_fmt(m[k]) for k in DEPTH_METRICS))
     return "\n".join(lines)

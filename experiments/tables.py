@@ -45,20 +45,21 @@ def depth_table(runs: list[tuple[str, Path]]) -> list[str]:
 
 
 def seam_table(runs: list[tuple[str, Path]]) -> list[str]:
-    """Depth next to the seam of the panoramas (``depth.json``'s ``seam`` entries)."""
+    """Depth next to the seam of the panoramas and around the image centre (``depth.json``'s ``seam``
+    and ``centre`` entries)."""
     lines = [_row("", list(DEPTH_KEYS)), "|---" * (len(DEPTH_KEYS) + 1) + "|"]
-    base = None
-    for label, run in runs:
-        d = _load(run / "depth.json")
-        if d is None or not d.get("seam"):
-            continue
-        base = base or d["baselines"]
-        lines.append(_row(label, [f"{d['seam'][k]:.4f}" for k in DEPTH_KEYS]))
-    for name, b in (base or {}).items():
-        if b and b.get("seam"):
-            lines.append(
-                _row(name.replace("_", "-") + " baseline", [f"{b['seam'][k]:.4f}" for k in DEPTH_KEYS])
-            )
+    for part in ("seam", "centre"):
+        base = None
+        for label, run in runs:
+            d = _load(run / "depth.json")
+            if d is None or not d.get(part):
+                continue
+            base = base or d["baselines"]
+            lines.append(_row(f"{label} @{part}", [f"{d[part][k]:.4f}" for k in DEPTH_KEYS]))
+        for name, b in (base or {}).items():
+            if b and b.get(part):
+                label = name.replace("_", "-") + f" baseline @{part}"
+                lines.append(_row(label, [f"{b[part][k]:.4f}" for k in DEPTH_KEYS]))
     return lines
 
 
@@ -98,7 +99,7 @@ def main(argv: list[str]) -> None:
         runs.append((label or Path(path).name, Path(path)))
     for title, lines in (
         ("depth", depth_table(runs)),
-        ("depth next to the seam", seam_table(runs)),
+        ("depth next to the seam and around the centre", seam_table(runs)),
         ("pose", pose_table(runs, "pose.json")),
         ("pose, test rides rolled by random yaws", pose_table(runs, "pose_yaw.json")),
         ("per sequence", per_sequence(runs)),

@@ -136,6 +136,13 @@ def test_seam_columns_scored_with_the_whole_image_scale():
     assert acc.add(gt, pred, seam=True) == pytest.approx(2.0)
     r = acc.result()
     assert r["seam"]["abs_rel"] == pytest.approx(1.0) and r["seam"]["a1"] == 0 and r["seam"]["n_images"] == 1
+    assert r["centre"]["abs_rel"] == pytest.approx(0.0) and r["centre"]["n_images"] == 1
+    centre_only = pred.copy()
+    centre_only[:, [0, 15]] = 5.0
+    centre_only[:, 7:9] = [[10.0, 2.5]] * 4  # columns 7 and 8: the centre band of 16
+    c = DepthAccumulator(seam_fraction=0.125)
+    c.add(gt, centre_only, seam=True)
+    assert c.result()["seam"]["abs_rel"] == pytest.approx(0) and c.result()["centre"]["abs_rel"] > 0.5
     assert r["abs_rel"] == pytest.approx(2 / 16)
     # masked-out seam pixels do not count; images that are not full panoramas have no seam
     gt2 = gt.copy()
@@ -260,9 +267,10 @@ def test_cli_depth_with_checkpoint_writes_json(synth, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "per_row" in text and "model/constant" in text and "model/per_row" in text
     data = json.loads(out.read_text())
-    keys = {*DEPTH_METRICS, "n_images", "scale_mean", "scale_std", "seam"}
+    keys = {*DEPTH_METRICS, "n_images", "scale_mean", "scale_std", "seam", "centre"}
     assert keys <= set(data) and set(data) == keys | {"baselines", "meta"}
     assert "@seam" in text and set(data["seam"]) == {*DEPTH_METRICS, "n_images"}
+    assert "@centre" in text and set(data["centre"]) == set(data["seam"])
     assert data["meta"]["seam_fraction"] == pytest.approx(0.125)
     assert data["n_images"] == 6  # the test sequence's targets (frames 1..6)
     assert set(data["baselines"]) == {"constant", "per_row"}

@@ -150,8 +150,9 @@ class DepthAccumulator:
         median_scaling: multiply each prediction by ``median(gt) / median(pred)`` over its valid pixels.
         seam_fraction: also score the columns next to the seam of full panoramas (images added with
             ``seam=True``): this share of the width, half of it at each side (the columns that a network
-            without wrap-around sees next to its zero padding). The image's scale is the one of the whole
-            image. ``0`` turns it off.
+            without wrap-around sees next to its zero padding), and as a control the same number of
+            columns around the image centre, opposite the seam (the same kind of view, far from any image
+            border). The image's scale is the one of the whole image. ``0`` turns it off.
     """
 
     def __init__(
@@ -171,6 +172,7 @@ class DepthAccumulator:
         self.seam_fraction = float(seam_fraction)
         self.rows: list[dict[str, float]] = []
         self.seam_rows: list[dict[str, float]] = []
+        self.centre_rows: list[dict[str, float]] = []
         self.scales: list[float] = []
         self.skipped = 0
 
@@ -194,7 +196,7 @@ class DepthAccumulator:
             gt: ground truth ``[H,W]`` (metres, 0 = unknown).
             pred: prediction ``[H,W]`` (same size; any positive units).
             mask: optional ``[H,W]``, pixels > 0.5 are used.
-            seam: the image is a full 360-degree panorama: also score its seam columns (see
+            seam: the image is a full 360-degree panorama: also score its seam and centre columns (see
                 ``seam_fraction``).
 
         Returns:
@@ -226,17 +228,22 @@ class DepthAccumulator:
         self.scales.append(scale)
         k = self.seam_columns(g.shape[1]) if seam else 0
         if k:
+            w = g.shape[1]
             cols = np.nonzero(ok)[1]  # the columns of gv / pv, in the same (row-major) order
-            near = (cols < k) | (cols >= g.shape[1] - k)
-            if near.any():
-                self.seam_rows.append(depth_errors(gv[near], pv[near]))
+            for rows, sel in (
+                (self.seam_rows, (cols < k) | (cols >= w - k)),
+                (self.centre_rows, (cols >= w // 2 - k) & (cols < w // 2 + k)),
+            ):
+                if sel.any():
+                    rows.append(depth_errors(gv[sel], pv[sel]))
         return scale
 
     def result(self) -> dict[str, float | int]:
         """The measures of :data:`DEPTH_METRICS` averaged over images, ``n_images``, ``scale_mean`` and
         ``scale_std`` (population standard deviation) of the per-image scales. NaN when no image counted.
-        ``"seam"``: the same measures over the seam columns only (averaged over the images that have some,
-        with their count as ``n_images``), or ``None`` when no seam was scored."""
+        ``"seam"`` and ``"centre"``: the same measures over the seam columns only and over the centre
+        columns only (averaged over the images that have some, with their count as ``n_images``), or
+        ``None`` when none was scored."""
         n = len(self.rows)
         out: dict[str, Any] = {
             k: (float(np.mean([r[k] for r in self.rows])) if n else math.nan) for k in DEPTH_METRICS
@@ -244,11 +251,12 @@ class DepthAccumulator:
         out["n_images"] = n
         out["scale_mean"] = float(np.mean(self.scales)) if n else math.nan
         out["scale_std"] = float(np.std(self.scales)) if n else math.nan
-        out["seam"] = None
-        if self.seam_rows:
-            seam: dict[str, Any] = {k: float(np.mean([r[k] for r in self.seam_rows])) for k in DEPTH_METRICS}
-            seam["n_images"] = len(self.seam_rows)
-            out["seam"] = seam
+        for name, rows in (("seam", self.seam_rows), ("centre", self.centre_rows)):
+            part: dict[str, Any] | None = None
+            if rows:
+                part = {k: float(np.mean([r[k] for r in rows])) for k in DEPTH_METRICS}
+                part["n_images"] = len(rows)
+            out[name] = part
         return out
 
 
@@ -490,14 +498,16 @@ def evaluate_depth(
         prior_max_frames: at most this many prior frames, evenly spaced in dataset order (``None``: all).
         progress: show progress bars (``None``: when stderr is a terminal).
         seam_fraction: on full 360-degree panoramas, also score the columns next to the seam (this share
-            of the width, half at each side; default 1/8: 22.5 degrees each side), with each image's scale
-            from the whole image. ``0``: off. Models trained on crops of the panorama have no seam.
+            of the width, half at each side; default 1/8: 22.5 degrees each side) and, as a control, as
+            many columns around the image centre, with each image's scale from the whole image. ``0``:
+            off. Models trained on crops of the panorama have no seam.
 
     Returns:
         ``{"model": metrics, "constant": metrics, "per_row": metrics or None, "n_images": int,
         "n_without_gt": int, "prior_images": int, "source": str, "data": str, "split": ..., "split_name",
         "prior_split", "min_depth", "max_depth", "median_scaling", "seam_fraction"}``; ``metrics`` as
-        returned by :func:`evaluate_depth_maps`, with ``"seam"`` (see :meth:`DepthAccumulator.result`).
+        returned by :func:`evaluate_depth_maps`, with ``"seam"`` and ``"centre"`` (see
+        :meth:`DepthAccumulator.result`).
         ``per_row`` is ``None`` when the prior frames have no ground truth.
 
     Raises:
@@ -636,6 +646,7 @@ def _metrics_only(m: dict[str, Any] | None) -> dict[str, Any] | None:
         return None
     out = {k: m[k] for k in (*DEPTH_METRICS, "n_images", "scale_mean", "scale_std")}
     out["seam"] = m.get("seam")
+    out["centre"] = m.get("centre")
     return out
 
 
@@ -643,13 +654,13 @@ def depth_json(result: dict[str, Any]) -> dict[str, Any]:
     """The JSON layout of a result of :func:`evaluate_depth`::
 
     {"abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3", "n_images", "scale_mean", "scale_std",
-     "seam": {"abs_rel", ..., "a3", "n_images"} or null,
+     "seam": {"abs_rel", ..., "a3", "n_images"} or null, "centre": {same keys} or null,
      "baselines": {"constant": {same keys}, "per_row": {same keys} or null},
      "meta": {"source", "data", "split", "split_name", "prior_split", "prior_images", "n_without_gt",
               "min_depth", "max_depth", "median_scaling", "seam_fraction"}}
 
-    ``seam``: the measures over the columns next to the seam of full panoramas only (null when none was
-    scored).
+    ``seam``: the measures over the columns next to the seam of full panoramas only; ``centre``: over as
+    many columns around the image centre, opposite the seam (null when none was scored).
     """
     out: dict[str, Any] = dict(_metrics_only(result["model"]) or {})
     out["baselines"] = {
@@ -710,10 +721,17 @@ def format_depth_table(result: dict[str, Any]) -> str:
             for k in DEPTH_METRICS
         ]
         lines.append(f"{'model/' + name:18}" + "".join(_fmt(r) for r in ratios))
-    seams = [(name, m["seam"]) for name, m in rows if m is not None and m.get("seam")]
+    seams = [(name, m) for name, m in rows if m is not None and m.get("seam")]
     if seams:
         deg = 360.0 * result.get("seam_fraction", 0.0) / 2
-        lines.append(f"next to the seam ({deg:g} degrees each side, {seams[0][1]['n_images']} images):")
-        for name, m in seams:
-            lines.append(f"{name + ' @seam':18}" + "".join(_fmt(m[k]) for k in DEPTH_METRICS))
+        lines.append(
+            f"next to the seam and, opposite it, around the centre ({deg:g} degrees each side, "
+            f"{seams[0][1]['seam']['n_images']} images):"
+        )
+        for part in ("seam", "centre"):
+            for name, m in seams:
+                if m.get(part):
+                    lines.append(
+                        f"{name + ' @' + part:18}" + "".join(_fmt(m[part][k]) for k in DEPTH_METRICS)
+                    )
     return "\n".join(lines)

@@ -1,7 +1,8 @@
 """Print the Markdown tables of RESULTS.md from the JSON files that ``cylsfm evaluate`` wrote.
 
 Usage: ``python experiments/tables.py RUN_DIR[:LABEL] ...`` where each RUN_DIR holds ``depth.json``,
-``pose.json`` and (optionally) ``pose_yaw.json``. The baselines are printed once, from the first run.
+``pose.json`` and (optionally) ``pose_yaw.json`` and ``pose_yaw_SEED.json`` (several rolls). The
+baselines are printed once, from the first run.
 """
 
 from __future__ import annotations
@@ -79,6 +80,36 @@ def pose_table(runs: list[tuple[str, Path]], name: str) -> list[str]:
     return lines
 
 
+def yaw_seeds(runs: list[tuple[str, Path]]) -> list[str]:
+    """Snippet ATE over several random-yaw rolls of the test rides (``pose_yaw_SEED.json`` files)."""
+    lines = [
+        _row("", ["rolls", "snippet ATE mean (over rolls)", "min", "max", "constant velocity", "unrolled"]),
+        "|---" * 7 + "|",
+    ]
+    for label, run in runs:
+        files = sorted(run.glob("pose_yaw_*.json"))
+        if not files:
+            continue
+        ds = [_load(f) for f in files]
+        ate = [d["ate_mean"] for d in ds]
+        cv = sum(d["baselines"]["constant_velocity"]["ate_mean"] for d in ds) / len(ds)
+        plain = _load(run / "pose.json")
+        lines.append(
+            _row(
+                label,
+                [
+                    f"{len(ds)} seeds x 3 rides",
+                    f"{sum(ate) / len(ate):.4f}",
+                    f"{min(ate):.4f}",
+                    f"{max(ate):.4f}",
+                    f"{cv:.4f}",
+                    f"{plain['ate_mean']:.4f}" if plain else "-",
+                ],
+            )
+        )
+    return lines
+
+
 def per_sequence(runs: list[tuple[str, Path]]) -> list[str]:
     lines = []
     for label, run in runs:
@@ -102,6 +133,7 @@ def main(argv: list[str]) -> None:
         ("depth next to the seam and around the centre", seam_table(runs)),
         ("pose", pose_table(runs, "pose.json")),
         ("pose, test rides rolled by random yaws", pose_table(runs, "pose_yaw.json")),
+        ("pose, several random yaw rolls", yaw_seeds(runs)),
         ("per sequence", per_sequence(runs)),
     ):
         print(f"## {title}\n")

@@ -171,6 +171,12 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--roll", action=argparse.BooleanOptionalAction, default=None, help="random yaw-roll augmentation"
     )
+    p.add_argument(
+        "--reverse",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="play half of the training snippets backwards (time-reversal augmentation)",
+    )
     p.add_argument("--mask", help="static mask image: white = pixels to use (e.g. without the helmet)")
     p.add_argument("--split", help="split to train on (train, val, test, a split file path, or 'all')")
     p.add_argument("--workers", type=int, help="data loader processes")
@@ -200,6 +206,7 @@ def train_config_from_args(args: argparse.Namespace):
         "fov": "data.fov",
         "pose_head": "model.pose_head",
         "roll": "data.roll",
+        "reverse": "data.reverse",
         "mask": "data.mask",
         "workers": "data.workers",
         "seed": "seed",

@@ -303,8 +303,27 @@ def test_roll_keeps_geometry_consistent(room_root):
     assert checked_sign >= 2
 
 
+def test_reverse_swaps_the_sources_with_their_poses(room_root):
+    plain = SequenceDataset(room_root)[0]
+    s = SequenceDataset(
+        room_root, augment=AugmentConfig(mirror=False, color_jitter=False, reverse=True, reverse_prob=1.0)
+    )[0]
+    assert torch.equal(s["target"], plain["target"]) and torch.equal(s["depth"], plain["depth"])
+    assert torch.equal(s["sources"], plain["sources"].flip(0))
+    assert torch.equal(s["pose_gt"], plain["pose_gt"].flip(0))
+    assert warp_ratio(s) > 3
+    # the test can fail: the poses in time order do not explain the reversed sources
+    assert warp_ratio(s, plain["pose_gt"]) < 2
+    ds = SequenceDataset(room_root, augment=AugmentConfig(mirror=False, color_jitter=False, reverse=True))
+    torch.manual_seed(0)
+    flips = [torch.equal(ds[0]["sources"], plain["sources"].flip(0)) for _ in range(16)]
+    assert 0 < sum(flips) < 16
+    with pytest.raises(ValueError, match="reverse_prob"):
+        AugmentConfig(reverse_prob=-0.1)
+
+
 def test_all_augmentations_together(room_root):
-    ds = SequenceDataset(room_root, augment=AugmentConfig(mirror_prob=0.5, roll=True))
+    ds = SequenceDataset(room_root, augment=AugmentConfig(mirror_prob=0.5, roll=True, reverse=True))
     torch.manual_seed(1)
     for _ in range(4):
         s = ds[0]

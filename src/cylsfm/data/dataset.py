@@ -79,6 +79,12 @@ class AugmentConfig:
             (cameras that wrap). **Off by default**: the paper's pose network ends in a spatial average,
             which is invariant to rolls, so it cannot predict the rotated ego-motion; in a prototype,
             rolling made ego-motion unlearnable. It is meant for a yaw-equivariant pose network.
+        reverse: play the snippet backwards with probability ``reverse_prob``: the sources swap places
+            (the frame after the target comes first) and so do their ground-truth poses. The target and
+            its depth are unchanged. Without it every sample moves forward and the pose network can
+            predict "the first source is one step back" from the source's slot alone, without reading
+            the motion from the images; with it the slot says nothing.
+        reverse_prob: probability of a reversal.
     """
 
     mirror: bool = True
@@ -89,10 +95,14 @@ class AugmentConfig:
     saturation: float = 0.2
     hue: float = 0.05
     roll: bool = False
+    reverse: bool = False
+    reverse_prob: float = 0.5
 
     def __post_init__(self) -> None:
         if not 0 <= self.mirror_prob <= 1:
             raise ValueError(f"mirror_prob must be in [0, 1], got {self.mirror_prob}")
+        if not 0 <= self.reverse_prob <= 1:
+            raise ValueError(f"reverse_prob must be in [0, 1], got {self.reverse_prob}")
         for name in ("brightness", "contrast", "saturation"):
             value = getattr(self, name)
             if not 0 <= value <= 1:
@@ -219,8 +229,12 @@ def _augment_geometry(
     pose_gt: Tensor | None,
     cfg: AugmentConfig,
 ) -> tuple[Tensor, Camera, Tensor | None, Tensor | None, Tensor | None]:
-    """Roll and mirror all frames ``uint8 [L,H,W,3]`` of a sample together, with their ground truth."""
+    """Reverse, roll and mirror all frames ``uint8 [L,H,W,3]`` of a sample (target first, then the sources
+    in time order) together, with their ground truth."""
     width = camera.width
+    if cfg.reverse and float(torch.rand(())) < cfg.reverse_prob:
+        frames = torch.cat([frames[:1], frames[1:].flip(0)])
+        pose_gt = None if pose_gt is None else pose_gt.flip(0)
     if cfg.roll:
         k = int(torch.randint(0, width, ()))
         if k:

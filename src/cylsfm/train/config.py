@@ -50,6 +50,7 @@ class DataConfig:
     mirror: bool = True
     color_jitter: bool = True
     roll: bool = False  # random yaw rolls of whole samples; only with the equivariant pose head
+    reverse: bool = False  # play half of the samples backwards (the sources swap places)
     static_filter: str = "auto"  # auto | poses | image | none
     min_translation: float = 0.05
     min_image_diff: float = 0.01

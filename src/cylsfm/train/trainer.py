@@ -123,7 +123,10 @@ class Trainer:
             split_name=cfg.data.split_name,
             size=(cfg.data.width, cfg.data.height),
             augment=AugmentConfig(
-                mirror=cfg.data.mirror, color_jitter=cfg.data.color_jitter, roll=cfg.data.roll
+                mirror=cfg.data.mirror,
+                color_jitter=cfg.data.color_jitter,
+                roll=cfg.data.roll,
+                reverse=cfg.data.reverse,
             ),
             static=StaticFilter(cfg.data.static_filter, cfg.data.min_translation, cfg.data.min_image_diff),
         )

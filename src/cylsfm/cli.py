@@ -329,6 +329,13 @@ def _evaluate_args(p: argparse.ArgumentParser) -> None:
         default=22.5,
         help="also score full panoramas within this azimuth of the seam, at each side (default 22.5; 0: off)",
     )
+    depth.add_argument(
+        "--yaw-roll",
+        type=int,
+        metavar="SEED",
+        help="roll every test panorama and its ground truth by a random yaw (seeded, per frame): as if the "
+        "camera had been turned about its vertical axis",
+    )
     pose.add_argument("--snippet", type=int, default=5, help="frames per ATE snippet (default 5)")
     pose.add_argument(
         "--yaw-roll",
@@ -366,6 +373,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise CylsfmError(f"--batch-size must be at least 1, got {args.batch_size}")
     split = None if args.split == "all" else args.split
     progress = None if not args.no_progress else False
+    if args.yaw_roll is not None and not args.checkpoint:
+        raise CylsfmError("--yaw-roll rolls the input of a model: it needs --checkpoint")
     if args.checkpoint:
         from .inference import Predictor
 
@@ -391,6 +400,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             batch_size=args.batch_size,
             progress=progress,
             seam_fraction=2 * args.seam_degrees / 360.0,
+            yaw_roll=args.yaw_roll,
         )
         print(format_depth_table(result))
         report = depth_json(result)

@@ -300,3 +300,48 @@ def test_cli_depth_perfect_and_missing_predictions(synth, tmp_path, capsys):
     assert main(args) == 2
     err = capsys.readouterr().err
     assert str(missing) in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+class _ColumnPredictor:
+    """A stand-in for :class:`cylsfm.inference.Predictor`: depth from the red channel (follows the image
+    when it is rolled) or a fixed column profile (knows only where things usually are in the image)."""
+
+    def __init__(self, from_image: bool, profile: np.ndarray | None = None) -> None:
+        self.from_image, self.profile = from_image, profile
+
+    def window(self, camera):
+        return None
+
+    def depth(self, images: torch.Tensor, camera) -> torch.Tensor:
+        if self.from_image:
+            return 1.0 + 40.0 * images[:, :1].double()
+        return torch.from_numpy(self.profile).expand(images.shape[0], 1, *self.profile.shape).clone()
+
+
+def test_yaw_roll_turns_images_and_ground_truth_together(tmp_path):
+    cam = CylindricalCamera.full(16, 8)
+    w = SequenceWriter(tmp_path / "seq", cam)
+    red = np.tile(np.linspace(0, 255, 16).round().astype(np.uint8), (8, 1))  # depth grows along the width
+    for _ in range(6):
+        img = np.stack([red, red // 2, red // 3], -1)
+        w.add_frame(img, (1.0 + 40.0 * red / 255.0).astype(np.float32))
+    w.finish()
+    make_splits(tmp_path, mode="frame", fractions=(0.5, 0.0, 0.5), seed=0)
+    follows = _ColumnPredictor(True)
+    plain = evaluate_depth(follows, tmp_path, split="test")
+    rolled = evaluate_depth(follows, tmp_path, split="test", yaw_roll=3)
+    assert plain["model"]["abs_rel"] == pytest.approx(0, abs=1e-6)
+    assert rolled["model"]["abs_rel"] == pytest.approx(0, abs=1e-6) and rolled["yaw_roll"] == 3
+    assert rolled["constant"]["abs_rel"] == pytest.approx(plain["constant"]["abs_rel"], rel=1e-9)
+    prior = _ColumnPredictor(False, (1.0 + 40.0 * red / 255.0).astype(np.float64))
+    assert evaluate_depth(prior, tmp_path, split="test")["model"]["abs_rel"] == pytest.approx(0, abs=1e-6)
+    assert evaluate_depth(prior, tmp_path, split="test", yaw_roll=3)["model"]["abs_rel"] > 0.1
+    with pytest.raises(ValueError, match="yaw_roll"):
+        evaluate_depth(str(tmp_path), tmp_path, split="test", yaw_roll=0)
+
+
+def test_cli_yaw_roll_needs_a_checkpoint(synth, capsys):
+    root, _ = synth
+    args = ["evaluate", "depth", "--predictions", str(root), "--data", str(root), "--yaw-roll", "1"]
+    assert main(args) == 2
+    assert "--yaw-roll" in capsys.readouterr().err

@@ -470,6 +470,7 @@ def evaluate_depth(
     prior_max_frames: int | None = 2000,
     progress: bool | None = False,
     seam_fraction: float = 0.125,
+    yaw_roll: int | None = None,
 ) -> dict[str, Any]:
     """Evaluate depth on a dataset's ground truth, with the ``constant`` and ``per_row`` baselines.
 
@@ -501,6 +502,10 @@ def evaluate_depth(
             of the width, half at each side; default 1/8: 22.5 degrees each side) and, as a control, as
             many columns around the image centre, with each image's scale from the whole image. ``0``:
             off. Models trained on crops of the panorama have no seam.
+        yaw_roll: a seed: roll every evaluated panorama, its ground truth and mask by a random number of
+            columns (drawn per frame), as if the 360-degree camera had been turned about its vertical
+            axis. A network that wraps around sees the same scene at another azimuth; one that does not
+            may have learned where the road usually is in the image. Full panoramas and models only.
 
     Returns:
         ``{"model": metrics, "constant": metrics, "per_row": metrics or None, "n_images": int,
@@ -542,6 +547,13 @@ def evaluate_depth(
     else:
         predictor = predictor_or_predictions
         source = f"checkpoint {getattr(getattr(predictor, 'models', None), 'path', '?')}"
+    if yaw_roll is not None:
+        if predictor is None:
+            raise ValueError("yaw_roll applies to a model's predictions, not to a directory of predictions")
+        for s in sequences:
+            if not s.camera.wraps and any(f[0] is s for f in with_gt):
+                raise DatasetError(f"{s.path / 'camera.json'}: yaw rolls need full 360-degree panoramas")
+        source += f", rolled by random yaws (seed {yaw_roll})"
 
     # ---- the per-row prior from the training frames
     prior = RowPrior(min_depth, max_depth)
@@ -578,11 +590,17 @@ def evaluate_depth(
             mine = [f for f in with_gt if f[0] is seq]
             batches += [mine[k : k + batch_size] for k in range(0, len(mine), batch_size)]
 
+        def roll_of(seq: SequenceInfo, i: int) -> int:
+            if yaw_roll is None:
+                return 0
+            n_seq = next(k for k, s in enumerate(sequences) if s is seq)
+            return int(np.random.default_rng([yaw_roll, n_seq, i]).integers(seq.camera.width))
+
         def load_batch(batch: list[tuple[SequenceInfo, int]]) -> tuple[list[np.ndarray], list[np.ndarray]]:
             seq = batch[0][0]
-            gts = [load_depth(seq.depth_path(i)) for _, i in batch]
+            gts = [np.roll(load_depth(seq.depth_path(i)), roll_of(seq, i), axis=1) for _, i in batch]
             if predictor is not None:
-                preds = [load_image(seq.images[i]) for _, i in batch]
+                preds = [np.roll(load_image(seq.images[i]), roll_of(seq, i), axis=1) for _, i in batch]
             else:
                 preds = [load_prediction(pred_dirs[seq.name], seq.images[i].stem) for _, i in batch]
             return gts, preds
@@ -604,6 +622,8 @@ def evaluate_depth(
             else:
                 preds = [resize_depth(p, g.shape, wrap=camera.wraps) for p, g in zip(preds, gts, strict=True)]
             for (_, i), g, p in zip(batch, gts, preds, strict=True):
+                if yaw_roll is not None and mask is not None:
+                    mask = np.roll(mask_of(seq), roll_of(seq, i), axis=1)
                 try:
                     model.add(g, p, mask, seam)
                 except ValueError as exc:
@@ -637,6 +657,7 @@ def evaluate_depth(
         "max_depth": float(max_depth),
         "median_scaling": bool(median_scaling),
         "seam_fraction": float(seam_fraction),
+        "yaw_roll": yaw_roll,
     }
 
 
@@ -657,7 +678,7 @@ def depth_json(result: dict[str, Any]) -> dict[str, Any]:
      "seam": {"abs_rel", ..., "a3", "n_images"} or null, "centre": {same keys} or null,
      "baselines": {"constant": {same keys}, "per_row": {same keys} or null},
      "meta": {"source", "data", "split", "split_name", "prior_split", "prior_images", "n_without_gt",
-              "min_depth", "max_depth", "median_scaling", "seam_fraction"}}
+              "min_depth", "max_depth", "median_scaling", "seam_fraction", "yaw_roll"}}
 
     ``seam``: the measures over the columns next to the seam of full panoramas only; ``centre``: over as
     many columns around the image centre, opposite the seam (null when none was scored).
@@ -681,6 +702,7 @@ def depth_json(result: dict[str, Any]) -> dict[str, Any]:
             "max_depth",
             "median_scaling",
             "seam_fraction",
+            "yaw_roll",
         )
         if k in result
     }

@@ -340,6 +340,24 @@ def test_yaw_roll_turns_images_and_ground_truth_together(tmp_path):
         evaluate_depth(str(tmp_path), tmp_path, split="test", yaw_roll=0)
 
 
+def test_yaw_roll_turns_the_mask_with_the_panorama(tmp_path):
+    cam = CylindricalCamera.full(16, 8)
+    w = SequenceWriter(tmp_path / "seq", cam)
+    red = np.tile(np.linspace(0, 255, 16).round().astype(np.uint8), (8, 1))
+    depth = (1.0 + 40.0 * red / 255.0).astype(np.float32)
+    depth[:, 8:] = 0.5  # unknown to any depth range below: only the masked-out half is wrong
+    for _ in range(6):
+        w.add_frame(np.stack([red, red // 2, red // 3], -1), np.where(depth > 0.5, depth, 3.0))
+    keep = np.zeros((8, 16), bool)
+    keep[:, :8] = True  # the half whose depth the red channel encodes
+    w.finish(mask=keep)
+    make_splits(tmp_path, mode="frame", fractions=(0.5, 0.0, 0.5), seed=0)
+    follows = _ColumnPredictor(True)
+    for roll in (None, 3, 4):
+        r = evaluate_depth(follows, tmp_path, split="test", yaw_roll=roll)
+        assert r["model"]["abs_rel"] == pytest.approx(0, abs=1e-6)
+
+
 def test_cli_yaw_roll_needs_a_checkpoint(synth, capsys):
     root, _ = synth
     args = ["evaluate", "depth", "--predictions", str(root), "--data", str(root), "--yaw-roll", "1"]

@@ -429,6 +429,11 @@ def load_prediction(dirs: Sequence[Path], stem: str) -> np.ndarray:
     return out
 
 
+def _roll_columns(x: np.ndarray, k: int) -> np.ndarray:
+    """``[H,W,...]`` rolled by ``k`` columns (a yaw turn of a full panorama); ``x`` itself when ``k == 0``."""
+    return np.roll(x, k, axis=1) if k else x
+
+
 def _to_tensor(images: list[np.ndarray]) -> torch.Tensor:
     """uint8 ``[H,W,3]`` frames -> float32 ``[B,3,H,W]`` in [0, 1]."""
     return torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).float().div_(255.0)
@@ -562,12 +567,12 @@ def evaluate_depth(
     if prior_max_frames is not None and len(prior_frames) > prior_max_frames:
         pick = np.linspace(0, len(prior_frames) - 1, prior_max_frames).round().astype(int)
         prior_frames = [prior_frames[k] for k in pick]
-    masks: dict[str, np.ndarray | None] = {}
+    seq_masks: dict[str, np.ndarray | None] = {}
 
     def mask_of(seq: SequenceInfo) -> np.ndarray | None:
-        if seq.name not in masks:
-            masks[seq.name] = None if seq.mask is None else load_mask(seq.mask)
-        return masks[seq.name]
+        if seq.name not in seq_masks:
+            seq_masks[seq.name] = None if seq.mask is None else load_mask(seq.mask)
+        return seq_masks[seq.name]
 
     with ThreadPoolExecutor(max_workers=4) as pool:
         bar = _progress(len(prior_frames), "per-row prior", progress)
@@ -590,17 +595,27 @@ def evaluate_depth(
             mine = [f for f in with_gt if f[0] is seq]
             batches += [mine[k : k + batch_size] for k in range(0, len(mine), batch_size)]
 
+        seq_number = {id(s): k for k, s in enumerate(sequences)}
+
         def roll_of(seq: SequenceInfo, i: int) -> int:
+            """Columns that frame ``i`` of ``seq`` is rolled by (0 without ``yaw_roll``)."""
             if yaw_roll is None:
                 return 0
-            n_seq = next(k for k, s in enumerate(sequences) if s is seq)
-            return int(np.random.default_rng([yaw_roll, n_seq, i]).integers(seq.camera.width))
+            rng = np.random.default_rng([yaw_roll, seq_number[id(seq)], i])
+            return int(rng.integers(seq.camera.width))
 
         def load_batch(batch: list[tuple[SequenceInfo, int]]) -> tuple[list[np.ndarray], list[np.ndarray]]:
             seq = batch[0][0]
-            gts = [np.roll(load_depth(seq.depth_path(i)), roll_of(seq, i), axis=1) for _, i in batch]
+            rolls = [roll_of(seq, i) for _, i in batch]
+            gts = [
+                _roll_columns(load_depth(seq.depth_path(i)), k)
+                for (_, i), k in zip(batch, rolls, strict=True)
+            ]
             if predictor is not None:
-                preds = [np.roll(load_image(seq.images[i]), roll_of(seq, i), axis=1) for _, i in batch]
+                preds = [
+                    _roll_columns(load_image(seq.images[i]), k)
+                    for (_, i), k in zip(batch, rolls, strict=True)
+                ]
             else:
                 preds = [load_prediction(pred_dirs[seq.name], seq.images[i].stem) for _, i in batch]
             return gts, preds
@@ -610,6 +625,7 @@ def evaluate_depth(
             seq = batch[0][0]
             camera = seq.camera
             mask = mask_of(seq)
+            masks = [None if mask is None else _roll_columns(mask, roll_of(seq, i)) for _, i in batch]
             seam = camera.wraps
             if predictor is not None:
                 depth = predictor.depth(_to_tensor(preds), camera)[:, 0].double().cpu().numpy()
@@ -617,13 +633,11 @@ def evaluate_depth(
                 if win is not None:
                     seam = False  # a crop of the panorama: its sides are no seam
                     gts = [g[:, win[0] : win[1]] for g in gts]
-                    mask = None if mask is None else mask[:, win[0] : win[1]]
+                    masks = [None if m is None else m[:, win[0] : win[1]] for m in masks]
                 preds = list(depth)
             else:
                 preds = [resize_depth(p, g.shape, wrap=camera.wraps) for p, g in zip(preds, gts, strict=True)]
-            for (_, i), g, p in zip(batch, gts, preds, strict=True):
-                if yaw_roll is not None and mask is not None:
-                    mask = np.roll(mask_of(seq), roll_of(seq, i), axis=1)
+            for (_, i), g, p, mask in zip(batch, gts, preds, masks, strict=True):
                 try:
                     model.add(g, p, mask, seam)
                 except ValueError as exc:

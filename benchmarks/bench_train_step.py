@@ -87,7 +87,7 @@ def train_step_bench(
     if loss == "paper":  # eq. 1 with every term: L1 + explainability + second-order smoothness
         cfg = LossConfig(smooth_weight=2.0, explain_weight=0.2)
     else:  # the default recipe (preset "improved")
-        from cylsfm.train.config import preset
+        from cylsfm.model.config import preset
 
         cfg = preset("improved").loss
     use_masks = cfg.explain_weight > 0

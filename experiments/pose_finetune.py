@@ -24,8 +24,8 @@ import torch
 from cylsfm.data.dataset import SequenceDataset, camera_of
 from cylsfm.geometry import mat_to_pose_vec, pose_vec_to_mat
 from cylsfm.losses import LossConfig, view_synthesis_loss
-from cylsfm.train.checkpoint import load_models
-from cylsfm.train.config import preset
+from cylsfm.model import load_models
+from cylsfm.model.config import preset
 
 
 def loss_config(variant: str) -> LossConfig:

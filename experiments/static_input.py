@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from cylsfm.data.dataset import SequenceDataset
-from cylsfm.train.checkpoint import load_models
+from cylsfm.model import load_models
 
 
 def main() -> None:

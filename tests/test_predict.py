@@ -10,10 +10,9 @@ from PIL import Image
 
 from cylsfm.cli import main
 from cylsfm.geometry import CylindricalCamera, EquirectangularCamera, PinholeCamera
-from cylsfm.inference import Predictor
+from cylsfm.model import Predictor, build_models, save_checkpoint
+from cylsfm.model.config import config_to_dict, preset
 from cylsfm.predict import model_camera, predict
-from cylsfm.train.checkpoint import build_models, save_checkpoint
-from cylsfm.train.config import config_to_dict, preset
 
 
 @pytest.fixture(scope="module")

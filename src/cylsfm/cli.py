@@ -191,7 +191,7 @@ def _train_args(p: argparse.ArgumentParser) -> None:
 
 def train_config_from_args(args: argparse.Namespace):
     """The resolved training configuration of ``cylsfm train`` arguments."""
-    from .train.config import apply_overrides, load_config, preset
+    from .model.config import apply_overrides, load_config, preset
 
     cfg = load_config(args.config) if args.config else preset(args.preset or "default")
     if args.config and args.preset:
@@ -376,7 +376,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.yaw_roll is not None and not args.checkpoint:
         raise CylsfmError("--yaw-roll rolls the input of a model: it needs --checkpoint")
     if args.checkpoint:
-        from .inference import Predictor
+        from .model import Predictor
 
         source = Predictor.from_checkpoint(args.checkpoint, args.device)
     if args.action == "depth":

@@ -42,8 +42,8 @@ def run_demo(
     """Run the demonstration into ``out``; returns the evaluation results."""
     from .evaluate.depth import depth_json, evaluate_depth, format_depth_table
     from .evaluate.pose import evaluate_pose, format_pose_table, pose_json
-    from .inference import Predictor
-    from .train.config import apply_overrides, preset
+    from .model import Predictor
+    from .model.config import apply_overrides, preset
     from .train.trainer import train
 
     t0 = time.monotonic()

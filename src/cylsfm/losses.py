@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .geometry import Camera, inverse_warp, resize_image
+from .geometry import Camera, column_difference, inverse_warp, pad_for_window, resize_image
 
 __all__ = [
     "LossConfig",
@@ -46,15 +46,7 @@ __all__ = [
 
 
 # ----------------------------------------------------------------------------- finite differences
-def gradient_x(t: Tensor, wrap: bool) -> Tensor:
-    """Forward difference along the width: ``t[..., j+1] - t[..., j]``.
-
-    ``[..., H, W] -> [..., H, W]`` with ``wrap`` (the last column differences across the seam with column
-    0), ``[..., H, W-1]`` without. Both agree on their common columns ``0 .. W-2``.
-    """
-    if wrap:
-        return torch.roll(t, -1, dims=-1) - t
-    return t[..., 1:] - t[..., :-1]
+gradient_x = column_difference  # the forward difference along the width, across the seam with ``wrap``
 
 
 def gradient_y(t: Tensor) -> Tensor:
@@ -112,21 +104,13 @@ def image_aware_smoothness(
 
 
 # ----------------------------------------------------------------------------- photometric errors
-def _pad_for_window(x: Tensor, wrap: bool) -> Tensor:
-    """Pad one pixel on every side for a 3x3 window: circular horizontally with wrap, reflect otherwise."""
-    if wrap:
-        x = torch.cat((x[..., -1:], x, x[..., :1]), -1)
-        return F.pad(x, (0, 0, 1, 1), mode="reflect")
-    return F.pad(x, (1, 1, 1, 1), mode="reflect")
-
-
 def ssim_error(x: Tensor, y: Tensor, wrap: bool) -> Tensor:
     """Structural dissimilarity ``(1 - SSIM) / 2`` over 3x3 windows, ``[B,C,H,W] -> [B,1,H,W]`` in [0, 1].
 
     Windows wrap around the seam when ``wrap``; the top and bottom rows use reflection.
     """
     c1, c2 = 0.01**2, 0.03**2
-    xp, yp = _pad_for_window(x, wrap), _pad_for_window(y, wrap)
+    xp, yp = pad_for_window(x, wrap), pad_for_window(y, wrap)
     stacked = torch.cat((xp, yp, xp * xp, yp * yp, xp * yp), 1)
     # a depthwise 3x3 box filter: several times faster than avg_pool2d on the CPU, forward and backward
     box = torch.full((stacked.shape[1], 1, 3, 3), 1.0 / 9, dtype=stacked.dtype, device=stacked.device)

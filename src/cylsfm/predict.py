@@ -46,7 +46,7 @@ from .data.format import image_size, load_image, save_depth, save_png
 from .errors import CylsfmError
 from .export.colorize import colorize_depth, side_by_side
 from .geometry import Camera, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
-from .inference import Predictor
+from .model import Predictor
 
 __all__ = [
     "ASPECT_TOLERANCE",
@@ -475,7 +475,7 @@ def predict(
     """Predict depth for images, image folders and videos; see the module docstring for the outputs.
 
     Args:
-        checkpoint: a checkpoint file, a run directory, or a ready :class:`~cylsfm.inference.Predictor`.
+        checkpoint: a checkpoint file, a run directory, or a ready :class:`~cylsfm.model.Predictor`.
         inputs: image files, folders of images and video files.
         out: output directory (created).
         camera: the camera of every input (a ``camera.json`` path or a camera); ``None``: inputs must be

@@ -235,8 +235,8 @@ def synth(tmp_path_factory):
     """2 synthetic sequences x 8 frames at 128x32 (train: one sequence, test: the other) and an untrained
     checkpoint."""
     from cylsfm.data.synthetic import generate_dataset
-    from cylsfm.train.checkpoint import build_models, save_checkpoint
-    from cylsfm.train.config import config_to_dict, preset
+    from cylsfm.model import build_models, save_checkpoint
+    from cylsfm.model.config import config_to_dict, preset
 
     base = tmp_path_factory.mktemp("evaldepth")
     root = base / "data"
@@ -303,7 +303,7 @@ def test_cli_depth_perfect_and_missing_predictions(synth, tmp_path, capsys):
 
 
 class _ColumnPredictor:
-    """A stand-in for :class:`cylsfm.inference.Predictor`: depth from the red channel (follows the image
+    """A stand-in for :class:`cylsfm.model.Predictor`: depth from the red channel (follows the image
     when it is rolled) or a fixed column profile (knows only where things usually are in the image)."""
 
     def __init__(self, from_image: bool, profile: np.ndarray | None = None) -> None:

@@ -201,7 +201,7 @@ def test_set_wrap_flips_layers() -> None:
 
 
 def test_pad_cat_equals_cat_then_circular_pad_with_gradients() -> None:
-    from cylsfm.nn.layers import pad_cat
+    from cylsfm.geometry.seam import pad_cat
 
     torch.manual_seed(0)
     a = torch.randn(2, 3, 4, 8, requires_grad=True)
@@ -221,7 +221,7 @@ def test_pad_cat_equals_cat_then_circular_pad_with_gradients() -> None:
 
 
 def test_pad_cat_of_windows_and_memory_format() -> None:
-    from cylsfm.nn.layers import pad_cat
+    from cylsfm.geometry.seam import pad_cat
 
     torch.manual_seed(0)
     # a feature kept padded by 2 columns (its centre is the window) and an up-convolution output
@@ -243,7 +243,7 @@ def test_pad_cat_of_windows_and_memory_format() -> None:
 
 
 def test_memory_format_of_a_column_window() -> None:
-    from cylsfm.nn.layers import _memory_format_of
+    from cylsfm.geometry.seam import memory_format_of as _memory_format_of
 
     x = torch.randn(2, 4, 5, 12)
     assert _memory_format_of(x) == torch.contiguous_format
@@ -257,7 +257,7 @@ def test_memory_format_of_a_column_window() -> None:
 @pytest.mark.parametrize("channels_last", [False, True])
 @pytest.mark.parametrize(("pad", "window"), [(0, None), (2, None), (1, (4, 2, 8)), (3, (5, 0, 6)), (9, None)])
 def test_relu_pad_equals_relu_then_pad(channels_last: bool, pad: int, window) -> None:
-    from cylsfm.nn.layers import relu_pad
+    from cylsfm.geometry.seam import relu_pad
 
     torch.manual_seed(0)
     y = torch.randn(2, 3, 5, 8 if window is None else 11)

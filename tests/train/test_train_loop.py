@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from cylsfm.cli import main
-from cylsfm.train.checkpoint import CheckpointError, load_checkpoint, load_models, save_checkpoint
-from cylsfm.train.config import apply_overrides, preset
+from cylsfm.model import CheckpointError, load_checkpoint, load_models, save_checkpoint
+from cylsfm.model.config import apply_overrides, preset
 from cylsfm.train.trainer import NonFiniteLossError, Trainer, train
 
 

@@ -484,7 +484,7 @@ def evaluate_depth(
     on its white pixels only.
 
     Args:
-        predictor_or_predictions: a :class:`cylsfm.inference.Predictor` (its depth comes back at the
+        predictor_or_predictions: a :class:`cylsfm.model.Predictor` (its depth comes back at the
             input's resolution; for a model trained on a crop of the panorama (``fov < 360``) the ground
             truth is cropped to the same columns), or a directory of predictions: one ``.npy`` depth map
             per frame, named after the frame's image, as ``PRED/SEQ/FRAME.npy`` or

@@ -252,7 +252,7 @@ def predict_consecutive(
     """Run the pose network over a chain of frames and return ``T_{j->j+1}`` ``[M-1,4,4]`` (float64).
 
     Args:
-        predictor: a :class:`cylsfm.inference.Predictor` (``.poses``, ``.config.data.seq_length``).
+        predictor: a :class:`cylsfm.model.Predictor` (``.poses``, ``.config.data.seq_length``).
         images: the chain's image files in time order (``M >= seq_length``).
         camera: their camera.
         batch_size: windows per network call.
@@ -506,7 +506,7 @@ def evaluate_pose(
     baselines (protocol in the module docstring).
 
     Args:
-        predictor_or_trajectory: a :class:`cylsfm.inference.Predictor`, or the TUM trajectory of another
+        predictor_or_trajectory: a :class:`cylsfm.model.Predictor`, or the TUM trajectory of another
             method: a directory with ``SEQ.txt`` per evaluated sequence, or one file when a single
             sequence is evaluated.
         data_root: the dataset root; evaluated sequences need ``poses.txt`` for the metrics (others are

@@ -1,4 +1,4 @@
-"""Camera models, rigid transforms and inverse warping: pure, batched, differentiable torch.
+"""Camera models, rigid transforms, the seam of full panoramas and inverse warping: pure, batched, differentiable.
 
 Nothing here knows about networks or datasets.
 """
@@ -15,10 +15,25 @@ from .pose import (
     pose_vec_to_mat,
     quaternion_to_matrix,
     relative_pose,
+    rotation_x,
+    rotation_y,
+    rotation_z,
     tum_to_mat,
     yaw_matrix,
+    yaw_transform,
 )
-from .warp import inverse_warp, resize_image, sample_image, transform_points
+from .seam import (
+    circular_pad,
+    column_difference,
+    pad_cat,
+    pad_for_window,
+    relu_pad,
+    resize_image,
+    roll_angle,
+    roll_columns,
+    roll_pose,
+)
+from .warp import inverse_warp, sample_image, transform_points
 
 __all__ = [
     "Camera",
@@ -27,6 +42,8 @@ __all__ = [
     "EquirectangularCamera",
     "PinholeCamera",
     "axis_angle_to_matrix",
+    "circular_pad",
+    "column_difference",
     "compose",
     "inverse_warp",
     "invert",
@@ -35,12 +52,22 @@ __all__ = [
     "mat_to_tum",
     "matrix_to_axis_angle",
     "matrix_to_quaternion",
+    "pad_cat",
+    "pad_for_window",
     "pose_vec_to_mat",
     "quaternion_to_matrix",
     "relative_pose",
+    "relu_pad",
     "resize_image",
+    "roll_angle",
+    "roll_columns",
+    "roll_pose",
+    "rotation_x",
+    "rotation_y",
+    "rotation_z",
     "sample_image",
     "transform_points",
     "tum_to_mat",
     "yaw_matrix",
+    "yaw_transform",
 ]

@@ -8,13 +8,26 @@ frame: rotating a motion by ``Q`` maps ``(t, omega)`` to ``(Q t, Q omega)``.
 
 Quaternions follow TUM files: ``(qx, qy, qz, qw)``, Hamilton convention, unit norm.
 
-All functions accept any leading batch shape ``[...]``.
+All functions accept any leading batch shape ``[...]``. The elementary rotations (:func:`rotation_x`,
+:func:`rotation_y`, :func:`rotation_z`), :func:`invert` and :func:`yaw_transform` also take NumPy arrays and
+then return NumPy arrays: the evaluation and the synthetic-scene generator use the same helpers.
+
+>>> import math
+>>> R = rotation_y(torch.tensor(math.pi / 2, dtype=torch.float64))
+>>> (R @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).round(decimals=6)  # forward turns to the right
+tensor([1., 0., 0.], dtype=torch.float64)
 """
 
 from __future__ import annotations
 
+from types import ModuleType
+from typing import TypeVar
+
+import numpy as np
 import torch
 from torch import Tensor
+
+ArrayT = TypeVar("ArrayT", Tensor, np.ndarray)
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -27,9 +40,49 @@ __all__ = [
     "pose_vec_to_mat",
     "quaternion_to_matrix",
     "relative_pose",
+    "rotation_x",
+    "rotation_y",
+    "rotation_z",
     "tum_to_mat",
     "yaw_matrix",
+    "yaw_transform",
 ]
+
+
+def _xp(x: object) -> ModuleType:
+    """The array library of ``x``: ``numpy`` for NumPy arrays, else ``torch``."""
+    return np if isinstance(x, np.ndarray) else torch
+
+
+def _rotation(angle: ArrayT, axis: int) -> ArrayT:
+    xp = _xp(angle)
+    c, s = xp.cos(angle), xp.sin(angle)
+    z, o = xp.zeros_like(angle), xp.ones_like(angle)
+    if axis == 0:
+        rows = ((o, z, z), (z, c, -s), (z, s, c))
+    elif axis == 1:
+        rows = ((c, z, s), (z, o, z), (-s, z, c))
+    else:
+        rows = ((c, -s, z), (s, c, z), (z, z, o))
+    return xp.stack([xp.stack(r, -1) for r in rows], -2)
+
+
+def rotation_x(angle: ArrayT) -> ArrayT:
+    """Rotation ``[..., 3, 3]`` by ``angle [...]`` radians about the x (right) axis: pitch."""
+    return _rotation(angle, 0)
+
+
+def rotation_y(angle: ArrayT) -> ArrayT:
+    """Rotation ``[..., 3, 3]`` by ``angle [...]`` radians about the y (down) axis: yaw.
+
+    Positive angles turn z (forward) towards x (right), i.e. increase azimuths ``atan2(x, z)``.
+    """
+    return _rotation(angle, 1)
+
+
+def rotation_z(angle: ArrayT) -> ArrayT:
+    """Rotation ``[..., 3, 3]`` by ``angle [...]`` radians about the z (forward) axis: roll."""
+    return _rotation(angle, 2)
 
 
 def _skew(w: Tensor) -> Tensor:
@@ -98,11 +151,15 @@ def compose(a: Tensor, b: Tensor) -> Tensor:
     return a @ b
 
 
-def invert(mat: Tensor) -> Tensor:
-    """Inverse of rigid transforms ``[..., 4, 4]`` (uses ``R^T``, no general matrix inverse)."""
-    rot_t = mat[..., :3, :3].transpose(-1, -2)
+def invert(mat: ArrayT) -> ArrayT:
+    """Inverse of rigid transforms ``[..., 4, 4]`` (uses ``R^T``, no general matrix inverse).
+
+    Tensors give tensors, NumPy arrays NumPy arrays.
+    """
+    xp = _xp(mat)
+    rot_t = xp.swapaxes(mat[..., :3, :3], -1, -2)
     t = -(rot_t @ mat[..., :3, 3:4])
-    out = torch.zeros_like(mat)
+    out = xp.zeros_like(mat)
     out[..., :3, :3] = rot_t
     out[..., :3, 3:4] = t
     out[..., 3, 3] = 1
@@ -181,10 +238,19 @@ def yaw_matrix(angle: Tensor | float, dtype: torch.dtype = torch.float32) -> Ten
     Positive angles turn the z (forward) axis towards x (right): ``R @ (0, 0, 1) = (sin a, 0, cos a)``,
     i.e. they increase the azimuth ``theta = atan2(x, z)`` of a point by ``a``.
     """
-    a = torch.as_tensor(angle, dtype=dtype)
-    c, s = torch.cos(a), torch.sin(a)
-    zero, one = torch.zeros_like(a), torch.ones_like(a)
-    return torch.stack(
-        (torch.stack((c, zero, s), -1), torch.stack((zero, one, zero), -1), torch.stack((-s, zero, c), -1)),
-        -2,
-    )
+    return rotation_y(torch.as_tensor(angle, dtype=dtype))
+
+
+def yaw_transform(angle: float, like: ArrayT) -> ArrayT:
+    """The 4x4 rigid transform of :func:`yaw_matrix` (no translation), as ``like``'s kind and dtype.
+
+    >>> yaw_transform(0.0, np.zeros(1)).tolist() == np.eye(4).tolist()
+    True
+    """
+    xp = _xp(like)
+    out = xp.eye(4, dtype=like.dtype)
+    if xp is torch:
+        out[:3, :3] = rotation_y(torch.tensor(float(angle), dtype=like.dtype))
+    else:
+        out[:3, :3] = rotation_y(np.asarray(float(angle), dtype=like.dtype))
+    return out

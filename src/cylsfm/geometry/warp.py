@@ -7,8 +7,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .cameras import Camera
+from .seam import circular_pad, resize_image
 
-__all__ = ["inverse_warp", "resize_image", "sample_image", "transform_points"]
+__all__ = ["inverse_warp", "resize_image", "sample_image", "transform_points"]  # resize_image: from .seam
 
 _SLACK = 1e-3
 
@@ -38,7 +39,7 @@ def sample_image(image: Tensor, uv: Tensor, wrap: bool) -> tuple[Tensor, Tensor]
     if wrap:
         # One extra column on each side makes every bilinear footprint of u in [0, W) lie inside the
         # padded image: padded column j+1 is image column j, padded 0 is column W-1, padded W+1 is 0.
-        padded = torch.cat((image[..., -1:], image, image[..., :1]), -1)
+        padded = circular_pad(image, 1, 1)
         u = torch.remainder(u, w) + 1
         span_u = w + 1  # padded width - 1
     else:
@@ -107,25 +108,3 @@ def inverse_warp(
         valid = valid & camera.projectable(points) & (depth > 0)
         warped = warped * valid.to(warped.dtype)
     return warped.to(src_image.dtype), valid
-
-
-def resize_image(x: Tensor, size: tuple[int, int], wrap: bool) -> Tensor:
-    """Bilinear resize of ``x [B,C,h,w]`` to ``size = (H, W)`` (``align_corners=False``).
-
-    With ``wrap`` the width is periodic and the interpolation blends across the seam: one column of
-    circular padding on each side is resized with the image and cropped away afterwards. This is exact
-    when ``W`` is an integer multiple of ``w`` (the up-sampling between network scales); other widths
-    are refused with ``wrap``.
-    """
-    h_out, w_out = size
-    if tuple(x.shape[-2:]) == (h_out, w_out):
-        return x
-    if not wrap:
-        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
-    w = x.shape[-1]
-    if w_out % w:
-        raise ValueError(f"a wrapping resize needs an integer width factor, got {w} -> {w_out} columns")
-    factor = w_out // w
-    padded = torch.cat((x[..., -1:], x, x[..., :1]), -1)
-    big = F.interpolate(padded, size=(h_out, (w + 2) * factor), mode="bilinear", align_corners=False)
-    return big[..., factor : factor + w_out]

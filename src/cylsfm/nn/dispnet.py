@@ -5,70 +5,21 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from cylsfm.nn.layers import (
+from ..errors import check_shape
+from ..geometry.seam import memory_format_of, pad_cat, relu_pad
+from .layers import (
+    MIN_HEIGHT,
+    MIN_WIDTH,
+    TOTAL_STRIDE,
     WrapConv2d,
     WrapConvTranspose2d,
-    _memory_format_of,
+    check_input_size,
     crop_like,
-    pad_cat,
-    relu_pad,
+    init_weights,
     wrap_upsample2x,
 )
 
-__all__ = ["MIN_HEIGHT", "MIN_WIDTH", "TOTAL_STRIDE", "DispNet", "check_input_size"]
-
-#: Total horizontal stride of the 7 stride-2 encoder stages (2**7).  With wrap-around the panorama
-#: width must be a multiple of it so that every feature map is an exact circular sub-sampling.
-TOTAL_STRIDE = 128
-#: Minimum image height (rows) accepted by the networks.
-MIN_HEIGHT = 32
-#: Minimum image width (columns) accepted by the networks when wrap-around is off.
-MIN_WIDTH = 32
-
-
-def check_input_size(width: int, height: int, wrap: bool) -> None:
-    """Validate an input image size for :class:`DispNet` / :class:`~cylsfm.nn.PoseExpNet`.
-
-    Args:
-        width: image width in pixels (azimuth columns).
-        height: image height in pixels (rows).
-        wrap: whether horizontal wrap-around (full 360° panorama) is on.
-
-    Raises:
-        ValueError: if ``height < 32``; with ``wrap`` if ``width`` is not a positive multiple of 128
-            (the message names the nearest valid widths); without ``wrap`` if ``width < 32``.
-    """
-    width, height = int(width), int(height)
-    if height < MIN_HEIGHT:
-        raise ValueError(f"input height {height} is too small: the networks need height >= {MIN_HEIGHT}")
-    if wrap:
-        if width <= 0 or width % TOTAL_STRIDE != 0:
-            lower = (width // TOTAL_STRIDE) * TOTAL_STRIDE
-            upper = lower + TOTAL_STRIDE
-            nearest = f"{lower} or {upper}" if lower > 0 else f"{upper}"
-            raise ValueError(
-                f"input width {width} is not a multiple of {TOTAL_STRIDE} (the total encoder stride 2^7): "
-                f"with wrap=True the panorama width must be a multiple of {TOTAL_STRIDE} so the wrap-around "
-                f"is exact at every scale; resize it to e.g. {nearest}, or use wrap=False for images that "
-                f"are not full 360° panoramas"
-            )
-    elif width < MIN_WIDTH:
-        raise ValueError(f"input width {width} is too small: the networks need width >= {MIN_WIDTH}")
-
-
-def _check_image(image: torch.Tensor, name: str, wrap: bool) -> None:
-    if image.dim() != 4 or image.shape[1] != 3:
-        raise ValueError(f"{name} must have shape [B, 3, H, W], got {tuple(image.shape)}")
-    check_input_size(image.shape[-1], image.shape[-2], wrap)
-
-
-def init_weights(module: nn.Module) -> None:
-    """Xavier-uniform init of every (transposed) convolution weight in ``module``; zero biases."""
-    for m in module.modules():
-        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
-            nn.init.xavier_uniform_(m.weight)
-            if m.bias is not None:
-                nn.init.zeros_(m.bias)
+__all__ = ["MIN_HEIGHT", "MIN_WIDTH", "TOTAL_STRIDE", "DispNet", "check_input_size"]  # size rules: .layers
 
 
 class _ConvReLU(nn.Sequential):
@@ -174,7 +125,8 @@ class DispNet(nn.Module):
         Raises:
             ValueError: for a wrongly shaped input or an unsupported size (see :meth:`check_input_size`).
         """
-        _check_image(image, "image", self.wrap)
+        check_shape(image, "B,3,H,W", "image")
+        check_input_size(image.shape[-1], image.shape[-2], self.wrap)
         if self.wrap:
             return self._forward_wrapped(image)
         return self._forward_modules(image)
@@ -213,7 +165,7 @@ class DispNet(nn.Module):
         (:func:`pad_cat`), so the wrap-around costs no pass over the data beyond what the unwrapped
         network does.  Every feature is a pair (padded tensor, padding).
         """
-        fmt = _memory_format_of(self.encoder[0][0][0].weight)
+        fmt = memory_format_of(self.encoder[0][0][0].weight)
         up_pad = max(max(u[0].wrap_left, u[0].wrap_right) for u in self.upconvs)
         first = self.encoder[0][0][0]
         xp = pad_cat([image], first.pad, memory_format=fmt).sub_(0.5).mul_(2.0)

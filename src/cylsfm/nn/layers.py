@@ -14,18 +14,22 @@ either way, so a trained network can be evaluated with or without wrap-around (s
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..geometry import resize_image
+from ..errors import InputError
+from ..geometry.seam import circular_pad, pad_cat, relu_pad, resize_image
 
 __all__ = [
+    "MIN_HEIGHT",
+    "MIN_WIDTH",
+    "TOTAL_STRIDE",
     "WrapConv2d",
     "WrapConvTranspose2d",
+    "check_input_size",
     "crop_like",
+    "init_weights",
     "pad_cat",
     "relu_pad",
     "set_wrap",
@@ -33,220 +37,52 @@ __all__ = [
 ]
 
 
-def _memory_format_of(x: torch.Tensor) -> torch.memory_format:
-    """The memory format ``x`` (4-D, possibly a view such as a column window) is laid out in.
-
-    ``torch.channels_last`` when the channel stride is smaller than the width stride (channels innermost),
-    else ``torch.contiguous_format``.  Judged from the strides, not from contiguity: a column window of a
-    channels-last tensor is contiguous in neither format but must be copied as channels-last (a copy
-    between the two layouts is a transpose, many times slower than a plain copy).
-    """
-    if x.dim() == 4 and x.shape[1] > 1 and x.stride(1) < x.stride(3):
-        return torch.channels_last
-    return torch.contiguous_format
+#: Total horizontal stride of the 7 stride-2 encoder stages (2**7).  With wrap-around the panorama
+#: width must be a multiple of it so that every feature map is an exact circular sub-sampling.
+TOTAL_STRIDE = 128
+#: Minimum image height (rows) accepted by the networks.
+MIN_HEIGHT = 32
+#: Minimum image width (columns) accepted by the networks when wrap-around is off.
+MIN_WIDTH = 32
 
 
-class _CircularPadWidth(torch.autograd.Function):
-    """Circular padding of the width with a lean backward pass.
-
-    Forward is one copy (``torch.cat`` of the edge columns and the input). Autograd's own backward of that
-    ``cat`` would materialise a zero-filled full-size gradient for every edge slice and add them up; here
-    the gradient is the centre of the incoming gradient plus the edge gradients added into the opposite
-    columns: one copy.
-    """
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor, left: int, right: int) -> torch.Tensor:  # type: ignore[override]
-        w = x.shape[-1]
-        ctx.pads = (left, right, w)
-        pieces = [x[..., w - left :]] if left else []
-        pieces.append(x)
-        if right:
-            pieces.append(x[..., :right])
-        return torch.cat(pieces, dim=-1)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
-        left, right, w = ctx.pads
-        gx = grad[..., left : left + w].clone(memory_format=_memory_format_of(grad))
-        if left:
-            gx[..., w - left :] += grad[..., :left]
-        if right:
-            gx[..., :right] += grad[..., left + w :]
-        return gx, None, None
-
-
-def _circular_pad_width(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
-    """Pad the last (width) dimension of ``x`` circularly by ``left`` / ``right`` columns.
+def check_input_size(width: int, height: int, wrap: bool) -> None:
+    """Validate an input image size for :class:`DispNet` / :class:`~cylsfm.nn.PoseExpNet`.
 
     Args:
-        x: tensor ``[..., W]`` with ``W >= 1``.
-        left: number of columns taken from the right edge and prepended (``>= 0``).
-        right: number of columns taken from the left edge and appended (``>= 0``).
+        width: image width in pixels (azimuth columns).
+        height: image height in pixels (rows).
+        wrap: whether horizontal wrap-around (full 360° panorama) is on.
 
-    Returns:
-        Tensor ``[..., left + W + right]`` with the same memory format as ``x``.  Unlike
-        ``F.pad(..., mode="circular")`` the padding may exceed ``W`` (the panorama then wraps around
-        more than once), and channels-last inputs stay channels-last (``F.pad`` in circular mode
-        returns a standard-contiguous tensor for a channels-last input).
+    Raises:
+        InputError: if ``height < 32``; with ``wrap`` if ``width`` is not a positive multiple of 128
+            (the message names the nearest valid widths); without ``wrap`` if ``width < 32``.
     """
-    w = x.shape[-1]
-    if left == 0 and right == 0:
-        return x
-    if left <= w and right <= w:
-        return _CircularPadWidth.apply(x, left, right)
-    # Very narrow feature maps (e.g. width 1 at the deepest level): tile then slice.
-    n_left = math.ceil(left / w)
-    n_right = math.ceil(right / w)
-    tiled = torch.cat([x] * (n_left + 1 + n_right), dim=-1)
-    start = n_left * w - left
-    out = tiled[..., start : start + left + w + right]
-    return out.contiguous(memory_format=_memory_format_of(x))
+    width, height = int(width), int(height)
+    if height < MIN_HEIGHT:
+        raise InputError(f"input height {height} is too small: the networks need height >= {MIN_HEIGHT}")
+    if wrap:
+        if width <= 0 or width % TOTAL_STRIDE != 0:
+            lower = (width // TOTAL_STRIDE) * TOTAL_STRIDE
+            upper = lower + TOTAL_STRIDE
+            nearest = f"{lower} or {upper}" if lower > 0 else f"{upper}"
+            raise InputError(
+                f"input width {width} is not a multiple of {TOTAL_STRIDE} (the total encoder stride 2^7): "
+                f"with wrap=True the panorama width must be a multiple of {TOTAL_STRIDE} so the wrap-around "
+                f"is exact at every scale; resize it to e.g. {nearest}, or use wrap=False for images that "
+                f"are not full 360° panoramas"
+            )
+    elif width < MIN_WIDTH:
+        raise InputError(f"input width {width} is too small: the networks need width >= {MIN_WIDTH}")
 
 
-def _zero_outside(g: torch.Tensor, height: int, start: int, width: int) -> None:
-    """Zero ``g`` ``[..., H, W]`` outside rows ``[0, height)`` x columns ``[start, start + width)``."""
-    if height < g.shape[-2]:
-        g[..., height:, :].zero_()
-    if start:
-        g[..., :height, :start].zero_()
-    if start + width < g.shape[-1]:
-        g[..., :height, start + width :].zero_()
-
-
-class _PadCat(torch.autograd.Function):
-    """Channel concatenation of column windows and circular width padding in one copy (and one copy back)."""
-
-    @staticmethod
-    def forward(  # type: ignore[override]
-        ctx, pad: int, width: int, starts: tuple[int, ...], fmt: torch.memory_format, *parts: torch.Tensor
-    ) -> torch.Tensor:
-        first = parts[0]
-        b, h = first.shape[0], first.shape[-2]
-        w = width
-        channels = [p.shape[1] for p in parts]
-        out = torch.empty(
-            (b, sum(channels), h, w + 2 * pad), dtype=first.dtype, device=first.device, memory_format=fmt
-        )
-        c = 0
-        for p, n, s in zip(parts, channels, starts, strict=True):
-            win = p[..., s : s + w]
-            out[:, c : c + n, :, pad : pad + w] = win
-            if pad:
-                out[:, c : c + n, :, :pad] = win[..., w - pad :]
-                out[:, c : c + n, :, w + pad :] = win[..., :pad]
-            c += n
-        ctx.meta = (pad, w, channels, starts, [p.shape for p in parts], [_memory_format_of(p) for p in parts])
-        return out
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
-        pad, w, channels, starts, shapes, fmts = ctx.meta
-        grads = []
-        c = 0
-        for n, s, shape, fmt in zip(channels, starts, shapes, fmts, strict=True):
-            g = grad[:, c : c + n]
-            gp = torch.empty(shape, dtype=grad.dtype, device=grad.device, memory_format=fmt)
-            _zero_outside(gp, shape[-2], s, w)
-            win = gp[..., s : s + w]
-            win.copy_(g[..., pad : pad + w])
-            if pad:
-                win[..., w - pad :] += g[..., :pad]
-                win[..., :pad] += g[..., w + pad :]
-            grads.append(gp)
-            c += n
-        return (None, None, None, None, *grads)
-
-
-def pad_cat(
-    parts: list[torch.Tensor],
-    pad: int,
-    width: int | None = None,
-    starts: list[int] | None = None,
-    memory_format: torch.memory_format | None = None,
-) -> torch.Tensor:
-    """``torch.cat`` of column windows along channels, padded circularly by ``pad`` columns, in one copy.
-
-    Part ``i`` contributes its columns ``[starts[i], starts[i] + width)``, e.g. the unpadded centre of a
-    feature map kept padded for a convolution (``starts[i]`` = that padding).
-
-    Args:
-        parts: ``[B, C_i, H, W_i]`` tensors (views are fine), all of the same ``B`` and ``H``, with
-            ``W_i >= starts[i] + width``.
-        pad: circular padding on each side, ``0 <= pad <= width``.
-        width: window width ``W``; default the first part's width minus its start.
-        starts: first column of each part's window; default all 0.
-        memory_format: layout of the result; default the first part's.
-
-    Returns:
-        ``[B, sum C_i, H, W + 2 pad]``, ready for :meth:`WrapConv2d.forward_padded`.  The gradient of
-        each part has the part's full shape (zero outside its window).
-    """
-    starts_t = tuple(int(s) for s in starts) if starts is not None else (0,) * len(parts)
-    if width is None:
-        width = parts[0].shape[-1] - starts_t[0]
-    if not 0 <= pad <= width:
-        raise ValueError(f"pad_cat: padding {pad} must be in [0, width={width}]")
-    fmt = memory_format if memory_format is not None else _memory_format_of(parts[0])
-    return _PadCat.apply(pad, int(width), starts_t, fmt, *parts)
-
-
-class _ReLUPad(torch.autograd.Function):
-    """ReLU of a window of a tensor, padded circularly, in one copy (and one pass back)."""
-
-    @staticmethod
-    def forward(  # type: ignore[override]
-        ctx, y: torch.Tensor, pad: int, height: int, start: int, width: int
-    ) -> torch.Tensor:
-        b, c = y.shape[:2]
-        fmt = _memory_format_of(y)
-        out = torch.empty((b, c, height, width + 2 * pad), dtype=y.dtype, device=y.device, memory_format=fmt)
-        torch.clamp_min(y[..., :height, start : start + width], 0, out=out[..., pad : pad + width])
-        if pad:
-            out[..., :pad] = out[..., width : width + pad]
-            out[..., width + pad :] = out[..., pad : 2 * pad]
-        ctx.save_for_backward(out)
-        ctx.meta = (pad, height, start, width, y.shape, fmt)
-        return out
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
-        (out,) = ctx.saved_tensors
-        pad, height, start, width, shape, fmt = ctx.meta
-        threshold_backward = torch.ops.aten.threshold_backward
-        gy = torch.empty(shape, dtype=grad.dtype, device=grad.device, memory_format=fmt)
-        _zero_outside(gy, height, start, width)
-        win = gy[..., :height, start : start + width]
-        threshold_backward.grad_input(
-            grad[..., pad : pad + width], out[..., pad : pad + width], 0, grad_input=win
-        )
-        if pad:
-            win[..., width - pad :] += threshold_backward(grad[..., :pad], out[..., :pad], 0)
-            win[..., :pad] += threshold_backward(grad[..., width + pad :], out[..., width + pad :], 0)
-        return gy, None, None, None, None
-
-
-def relu_pad(y: torch.Tensor, pad: int, window: tuple[int, int, int] | None = None) -> torch.Tensor:
-    """``relu`` of ``y`` (or of a window of it), padded circularly by ``pad`` columns, in one copy.
-
-    Replaces the in-place ReLU after a convolution when the next convolution wraps: the padding then
-    costs no extra pass over the feature map (see :meth:`WrapConv2d.forward_padded`).
-
-    Args:
-        y: ``[B, C, H, W]``, e.g. a convolution's output.
-        pad: columns copied circularly onto each side, ``>= 0``.
-        window: ``(height, start, width)``: use only rows ``[0, height)`` and columns
-            ``[start, start + width)`` of ``y`` (an up-convolution's output cropped to its skip
-            connection); default all of ``y``.
-
-    Returns:
-        ``[B, C, height, width + 2 pad]`` in ``y``'s memory format.  The gradient has ``y``'s full shape
-        (zero outside the window).
-    """
-    height, start, width = window if window is not None else (y.shape[-2], 0, y.shape[-1])
-    if pad > width:  # tiny feature maps: wrap around more than once
-        return _circular_pad_width(torch.relu(y[..., :height, start : start + width]), pad, pad)
-    return _ReLUPad.apply(y, int(pad), int(height), int(start), int(width))
+def init_weights(module: nn.Module) -> None:
+    """Xavier-uniform init of every (transposed) convolution weight in ``module``; zero biases."""
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            nn.init.xavier_uniform_(m.weight)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
 
 
 class WrapConv2d(nn.Conv2d):
@@ -292,7 +128,7 @@ class WrapConv2d(nn.Conv2d):
         """Convolve ``x`` ``[B, in_channels, H, W]`` -> ``[B, out_channels, H_out, W_out]``."""
         if not self.wrap or self.pad == 0:
             return super().forward(x)
-        x = _circular_pad_width(x, self.pad, self.pad)
+        x = circular_pad(x, self.pad, self.pad)
         return F.conv2d(x, self.weight, self.bias, self.stride, (self.pad, 0))
 
     def forward_padded(self, x: torch.Tensor) -> torch.Tensor:
@@ -370,7 +206,7 @@ class WrapConvTranspose2d(nn.ConvTranspose2d):
             return super().forward(x)
         s = self.stride[1]
         width = x.shape[-1]
-        out = super().forward(_circular_pad_width(x, self.wrap_left, self.wrap_right))
+        out = super().forward(circular_pad(x, self.wrap_left, self.wrap_right))
         start = s * self.wrap_left
         return out[..., start : start + s * width]
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from cylsfm.nn.dispnet import _check_image, check_input_size, init_weights
-from cylsfm.nn.layers import WrapConv2d, WrapConvTranspose2d, _memory_format_of, crop_like, pad_cat, relu_pad
+from ..errors import check_shape
+from ..geometry.seam import memory_format_of, pad_cat, relu_pad
+from .layers import WrapConv2d, WrapConvTranspose2d, check_input_size, crop_like, init_weights
 
 __all__ = ["PoseExpNet"]
 
@@ -117,13 +118,10 @@ class PoseExpNet(nn.Module):
         Raises:
             ValueError: for wrongly shaped inputs or an unsupported size.
         """
-        _check_image(target, "target", self.wrap)
+        check_shape(target, "B,3,H,W", "target")
+        check_input_size(target.shape[-1], target.shape[-2], self.wrap)
         b, s = target.shape[0], self.n_sources
-        if sources.dim() != 5 or tuple(sources.shape) != (b, s, 3, *target.shape[-2:]):
-            raise ValueError(
-                f"sources must have shape [B, S, 3, H, W] = {[b, s, 3, *target.shape[-2:]]}, "
-                f"got {list(sources.shape)}"
-            )
+        check_shape(sources, ",".join(str(n) for n in (b, s, 3, *target.shape[-2:])), "sources")
         if self.wrap:
             feats, masks = self._forward_wrapped(target, sources)
         else:
@@ -162,7 +160,7 @@ class PoseExpNet(nn.Module):
     ) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
         """The same with every feature map kept padded for the convolution that reads it (as in DispNet)."""
         first = self.encoder[0][0]
-        fmt = _memory_format_of(first.weight)
+        fmt = memory_format_of(first.weight)
         xp = pad_cat([target, *sources.unbind(1)], first.pad, memory_format=fmt).sub_(0.5).mul_(2.0)
         decoder = self.upconvs is not None and self.mask_heads is not None
         up_pad = max(max(u[0].wrap_left, u[0].wrap_right) for u in self.upconvs) if self.upconvs else 0

@@ -35,10 +35,11 @@ from ..data.dataset import AugmentConfig, SequenceDataset, StaticFilter, camera_
 from ..data.format import load_mask
 from ..errors import CylsfmError
 from ..geometry import Camera, pose_vec_to_mat
-from ..inference import pick_device
 from ..losses import image_pyramid, view_synthesis_loss
-from .checkpoint import build_models, load_checkpoint, save_checkpoint
-from .config import TrainConfig, config_from_dict, config_to_dict, save_config
+from ..model.build import build_models
+from ..model.checkpoint import load_checkpoint, save_checkpoint
+from ..model.config import TrainConfig, config_from_dict, config_to_dict, save_config
+from ..runtime import pick_device
 from .sampler import ResumableSampler, SeededDataset
 
 __all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "train"]

@@ -1,6 +1,6 @@
 import pytest
 
-from cylsfm.train.config import (
+from cylsfm.model.config import (
     ConfigError,
     apply_overrides,
     config_from_dict,

@@ -1,4 +1,4 @@
-"""Checkpoints: atomic writes, safe loading (``weights_only=True``), and rebuilding the networks.
+"""Checkpoints: atomic writes and safe loading (``weights_only=True``).
 
 A checkpoint is a ``torch.save`` of a plain dict (tensors, numbers, strings, lists, dicts)::
 
@@ -10,7 +10,6 @@ A checkpoint is a ``torch.save`` of a plain dict (tensors, numbers, strings, lis
     optimizer     optimizer state_dict (training checkpoints)
     scaler        AMP grad-scaler state (or absent)
     rng           {"torch": ByteTensor, "numpy": [...], "python": [...], "cuda": [...]} (training checkpoints)
-    sampler       {"epoch": int, "offset": int} position in the data order (training checkpoints)
 
 Wherever a checkpoint is asked for, a run directory also works: it means ``RUN/checkpoints/latest.pt``.
 """
@@ -18,24 +17,18 @@ Wherever a checkpoint is asked for, a run directory also works: it means ``RUN/c
 from __future__ import annotations
 
 import os
-import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from ..atomic import atomic_open
 from ..errors import CylsfmError
-from ..nn import DispNet, PoseExpNet
-from .config import ConfigError, TrainConfig, config_from_dict, config_to_dict
 
 __all__ = [
     "FORMAT",
     "CheckpointError",
-    "LoadedModels",
-    "build_models",
     "load_checkpoint",
-    "load_models",
     "resolve_checkpoint",
     "save_checkpoint",
 ]
@@ -45,16 +38,6 @@ FORMAT = "cylsfm-checkpoint-v1"
 
 class CheckpointError(CylsfmError):
     """A checkpoint file is missing, unreadable or not a cylsfm checkpoint."""
-
-
-def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseExpNet]:
-    """The networks of a configuration (freshly initialised)."""
-    n_src = cfg.data.seq_length - 1
-    disp = DispNet(wrap=cfg.wrap)
-    pose = PoseExpNet(
-        n_sources=n_src, explainability=cfg.model.explainability, wrap=cfg.wrap, pose_head=cfg.model.pose_head
-    )
-    return disp, pose
 
 
 def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
@@ -72,17 +55,8 @@ def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
 
 def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None:
     """Write ``state`` (see the module docstring) atomically: a temporary file, then ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    state = {"format": FORMAT, **state}
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_open(path) as fh:
+        torch.save({"format": FORMAT, **state}, fh)
 
 
 def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> dict[str, Any]:
@@ -101,40 +75,3 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
             raise CheckpointError(f"{p}: incomplete checkpoint, missing {key!r}")
     state["path"] = str(p)
     return state
-
-
-@dataclass
-class LoadedModels:
-    """Networks restored from a checkpoint, in eval mode, with their configuration."""
-
-    disp_net: DispNet
-    pose_net: PoseExpNet
-    config: TrainConfig
-    step: int
-    path: Path
-
-
-def load_models(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> LoadedModels:
-    """Rebuild the networks of a checkpoint (or run directory) and load their weights."""
-    state = load_checkpoint(path, map_location=device)
-    p = Path(state["path"])
-    try:
-        cfg = config_from_dict(state["config"], where=f"{p} (config)")
-    except ConfigError as exc:
-        raise CheckpointError(str(exc)) from None
-    disp, pose = build_models(cfg)
-    try:
-        disp.load_state_dict(state["disp_net"])
-        pose.load_state_dict(state["pose_net"])
-    except (RuntimeError, TypeError) as exc:
-        raise CheckpointError(
-            f"{p}: weights do not match the networks of its configuration ({exc})"
-        ) from None
-    disp.to(device).eval()
-    pose.to(device).eval()
-    return LoadedModels(disp, pose, cfg, int(state["step"]), p)
-
-
-def config_state(cfg: TrainConfig) -> dict[str, Any]:
-    """The configuration as stored in checkpoints."""
-    return config_to_dict(cfg)

@@ -1,0 +1,114 @@
+"""Running trained networks on images of any size: depth maps and relative poses.
+
+:class:`Predictor` takes images at their own resolution with their camera, brings them to the network's
+input (the centred crop of the field of view it was trained on, resized with area averaging), runs the
+networks, and brings depth back to the input's resolution. Depth and translation share the network's
+unknown scale.
+"""
+
+from __future__ import annotations
+
+import os
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..errors import CylsfmError
+from ..geometry import Camera, CylindricalCamera, pose_vec_to_mat, resize_image
+from ..runtime import pick_device
+from .build import LoadedModels, load_models
+
+__all__ = ["Predictor"]
+
+
+class Predictor:
+    """Depth and pose inference with the networks of a checkpoint.
+
+    Args:
+        models: networks loaded with :func:`cylsfm.model.load_models`.
+        device: where to run them.
+    """
+
+    def __init__(self, models: LoadedModels, device: torch.device | str = "cpu") -> None:
+        self.models = models
+        self.device = torch.device(device)
+        self.config = models.config
+        self.size = (models.config.data.width, models.config.data.height)
+        self.fov = models.config.data.fov
+        self.wrap = models.config.wrap
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike[str], device: str = "auto") -> Predictor:
+        dev = pick_device(device)
+        return cls(load_models(path, dev), dev)
+
+    # ------------------------------------------------------------------ input preparation
+    # The network was trained on panoramas resized to ``config.data.width x height`` and, for a field of
+    # view under 360 degrees, on the centred crop of that many degrees of them.
+    def window(self, camera: Camera) -> tuple[int, int] | None:
+        """Columns ``[x0, x1)`` of the input that the network sees (``None``: all of them)."""
+        if self.fov >= 360:
+            return None
+        if not isinstance(camera, CylindricalCamera) or not camera.wraps:
+            raise CylsfmError(
+                f"this model was trained on {self.fov:g}-degree crops of full cylindrical panoramas; "
+                f"give it full panoramas"
+            )
+        return camera.crop_window(self.fov)
+
+    def network_camera(self, camera: Camera) -> Camera:
+        """The camera of the network's input for input images of ``camera``."""
+        cam = camera.resized(*self.size)
+        return cam.crop(self.fov) if self.fov < 360 else cam  # type: ignore[attr-defined]
+
+    def prepare(self, images: Tensor, camera: Camera) -> Tensor:
+        """``[B,3,H,W]`` in [0, 1] at the camera's size -> the network's input ``[B,3,h,w]``."""
+        if images.shape[-2:] != (camera.height, camera.width):
+            raise CylsfmError(
+                f"images are {images.shape[-1]}x{images.shape[-2]} but the camera is {camera.width}x{camera.height}"
+            )
+        w, h = self.size
+        if images.shape[-2:] != (h, w):
+            images = F.interpolate(images, size=(h, w), mode="area")
+        if self.fov < 360:
+            x0, x1 = self.window(camera.resized(w, h))  # type: ignore[misc]
+            images = images[..., x0:x1]
+        return images.to(self.device).contiguous(memory_format=torch.channels_last)
+
+    # ------------------------------------------------------------------ outputs
+    @torch.inference_mode()
+    def disparity(self, images: Tensor, camera: Camera) -> Tensor:
+        """Finest-scale disparity ``[B,1,h,w]`` at the network's input size."""
+        return self.models.disp_net(self.prepare(images, camera))[0].float()
+
+    @torch.inference_mode()
+    def depth(self, images: Tensor, camera: Camera) -> Tensor:
+        """Depth ``[B,1,H,W']`` (network units) at the input's resolution (``W'``: the cropped width).
+
+        The disparity is resized bilinearly (wrapping around the seam of full panoramas) before it is
+        inverted, as in SfMLearner's evaluation.
+        """
+        disp = self.disparity(images, camera)
+        win = self.window(camera)  # the same field of view at the input's resolution
+        width = camera.width if win is None else win[1] - win[0]
+        size = (camera.height, width)
+        wrap = self.wrap and camera.wraps and win is None
+        if disp.shape[-2:] != size:
+            if wrap and width % disp.shape[-1] == 0:
+                disp = resize_image(disp, size, wrap=True)
+            else:
+                disp = F.interpolate(disp, size=size, mode="bilinear", align_corners=False)
+        return 1.0 / disp.clamp(min=1e-6)
+
+    @torch.inference_mode()
+    def poses(self, target: Tensor, sources: Tensor, camera: Camera) -> Tensor:
+        """Relative poses ``T_tgt_to_src [B,S,4,4]`` (translation in network depth units).
+
+        ``target`` is ``[B,3,H,W]``, ``sources`` ``[B,S,3,H,W]`` with ``S = seq_length - 1`` of the model.
+        """
+        b, s = sources.shape[:2]
+        tgt = self.prepare(target, camera)
+        src = self.prepare(sources.flatten(0, 1), camera).reshape(b, s, *tgt.shape[1:])
+        vec, _ = self.models.pose_net(tgt, src)
+        return pose_vec_to_mat(vec.double())

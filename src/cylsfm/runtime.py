@@ -1,0 +1,66 @@
+"""Where and how jobs run: the device choice and the one progress-bar factory every job uses."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterable
+from typing import Any
+
+import torch
+
+from .errors import CylsfmError
+
+__all__ = ["pick_device", "progress_bar"]
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """``auto`` -> CUDA when available, else the CPU; otherwise ``torch.device(name)``.
+
+    Raises:
+        CylsfmError: a CUDA device was asked for on a machine without CUDA, or the name is not a device.
+    """
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise CylsfmError(f"unknown device {name!r} (auto, cpu, cuda or cuda:N)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise CylsfmError(f"device {name!r} requested but CUDA is not available")
+    return dev
+
+
+def progress_bar(
+    iterable: Iterable[Any] | None = None,
+    *,
+    total: float | None = None,
+    desc: str | None = None,
+    unit: str = "it",
+    enabled: bool | None = True,
+    leave: bool = False,
+) -> Any:
+    """A tqdm progress bar on stderr, the same look in every job.
+
+    Args:
+        iterable: wrap this iterable (or ``None`` and call ``update`` by hand).
+        total: the expected count (frames, steps, seconds).
+        desc: the label in front of the bar.
+        unit: what is counted.
+        enabled: ``True`` shows it, ``False`` hides it, ``None`` shows it only on a terminal.
+        leave: keep the finished bar on screen.
+
+    Returns:
+        A ``tqdm`` object (also when hidden: ``update``, ``set_postfix`` and ``close`` then do nothing).
+    """
+    from tqdm import tqdm
+
+    return tqdm(
+        iterable,
+        total=total,
+        desc=desc,
+        unit=unit,
+        disable=None if enabled is None else not enabled,
+        leave=leave,
+        dynamic_ncols=True,
+        file=sys.stderr,
+    )

@@ -46,7 +46,7 @@ def _imports(path: Path, root: Path = SRC) -> list[tuple[str, list[str], int]]:
     """``(absolute module, imported names, line)`` of every ``cylsfm`` import in ``path``."""
     tree = ast.parse(path.read_text())
     rel = path.relative_to(root).with_suffix("")
-    package = ["cylsfm", *rel.parts[:-1]] if rel.name != "__init__" else ["cylsfm", *rel.parts[:-1]]
+    package = ["cylsfm", *rel.parts[:-1]]  # the package a relative import starts from
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):

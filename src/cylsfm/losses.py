@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .errors import InputError, check_shape
 from .geometry import Camera, column_difference, inverse_warp, pad_for_window, resize_image
 
 __all__ = [
@@ -37,11 +38,15 @@ __all__ = [
     "gradient_y",
     "image_aware_smoothness",
     "image_pyramid",
+    "min_reprojection_term",
+    "per_source_terms",
     "photometric_error",
     "second_order_smoothness",
     "second_order_terms",
+    "smoothness_terms",
     "ssim_error",
     "view_synthesis_loss",
+    "warp_sources",
 ]
 
 
@@ -100,7 +105,7 @@ def image_aware_smoothness(
         weight = torch.exp(-lap)
         d = dxx[..., :h, :w].abs() + dxy[..., :h, :w].abs() + dyy[..., :h, :w].abs()
         return (weight * d).mean()
-    raise ValueError(f"image-aware smoothness order must be 1 or 2, got {order}")
+    raise InputError(f"image-aware smoothness order must be 1 or 2, got {order}")
 
 
 # ----------------------------------------------------------------------------- photometric errors
@@ -187,11 +192,11 @@ class LossConfig:
     def __post_init__(self) -> None:
         for name in ("smooth_weight", "image_smooth_weight", "explain_weight"):
             if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.ssim_weight <= 1:
-            raise ValueError(f"ssim_weight must be in [0, 1], got {self.ssim_weight}")
+            raise InputError(f"ssim_weight must be in [0, 1], got {self.ssim_weight}")
         if self.image_smooth_order not in (1, 2):
-            raise ValueError(f"image_smooth_order must be 1 or 2, got {self.image_smooth_order}")
+            raise InputError(f"image_smooth_order must be 1 or 2, got {self.image_smooth_order}")
 
 
 @dataclass
@@ -212,6 +217,115 @@ def _masked_mean(x: Tensor, weight: Tensor) -> Tensor:
     return (x * weight).sum() / weight.sum().clamp(min=1.0)
 
 
+class _IdentityErrors:
+    """Photometric errors of the unwarped sources, per size (auto-masking): computed once per size, since
+    every scale of a full-resolution loss shares the full size."""
+
+    def __init__(self, ssim_weight: float, wrap: bool) -> None:
+        self.ssim_weight, self.wrap = ssim_weight, wrap
+        self.cache: dict[tuple[int, int], list[Tensor]] = {}
+
+    def __call__(self, tgt: Tensor, src: Tensor) -> list[Tensor]:
+        """``tgt [B,3,H,W]``, ``src [B,S,3,H,W]`` -> per source ``[B,1,H,W]`` (no gradient)."""
+        size = tuple(tgt.shape[-2:])
+        if size not in self.cache:
+            with torch.no_grad():
+                self.cache[size] = [  # type: ignore[index]
+                    photometric_error(tgt, src[:, k], self.ssim_weight, self.wrap)
+                    for k in range(src.shape[1])
+                ]
+        return self.cache[size]  # type: ignore[index]
+
+
+def min_reprojection_term(
+    errors: list[Tensor], valids: list[Tensor], weight: Tensor, identity: list[Tensor] | None
+) -> tuple[Tensor, Tensor]:
+    """Per pixel the smallest error over the sources (monodepth2), averaged -> ``(scalar, map [B,1,H,W])``.
+
+    Args:
+        errors: per source ``[B,1,H,W]`` photometric errors of the warped source.
+        valids: per source ``[B,1,H,W]`` 0/1: the source sees the pixel. A source that cannot see a pixel
+            never wins the minimum; a pixel no source sees is not used.
+        weight: ``[B,1,H,W]`` pixel weights (static mask).
+        identity: with auto-masking, per source the error of the *unwarped* source; pixels whose best
+            warped error is not below the best unwarped one are ignored. ``None``: no auto-masking.
+    """
+    err = torch.cat(errors, 1)  # [B,S,H,W]
+    val = torch.cat(valids, 1)
+    big = err.detach().max() + 1
+    err = torch.where(val > 0, err, big)
+    best, _ = err.min(1, keepdim=True)
+    use = weight * (val.amax(1, keepdim=True))
+    if identity is not None:
+        ident = torch.cat(identity, 1)
+        ident = ident + 1e-5 * torch.randn_like(ident)  # break ties as monodepth2 does
+        use = use * (best < ident.min(1, keepdim=True).values).to(use.dtype)
+    return _masked_mean(best, use), best.detach()
+
+
+def per_source_terms(
+    errors: list[Tensor],
+    valids: list[Tensor],
+    weight: Tensor,
+    identity: list[Tensor] | None,
+    explainability: Tensor | None,
+) -> tuple[list[Tensor], Tensor]:
+    """The paper's photometric term (eq. 3): one masked mean per source -> ``(terms, mean map [B,1,H,W])``.
+
+    Args:
+        errors, valids, weight: as in :func:`min_reprojection_term`.
+        identity: with auto-masking, per source the error of the unwarped source: pixels where warping
+            does not beat it are ignored. ``None``: no auto-masking.
+        explainability: ``[B,S,H,W]`` masks at this size multiplying each source's error, or ``None``.
+    """
+    n_src = len(errors)
+    terms, err_map = [], torch.zeros_like(errors[0])
+    for k in range(n_src):
+        use = weight * valids[k]
+        if identity is not None:
+            use = use * (errors[k] < identity[k]).to(use.dtype).detach()
+        e = errors[k]
+        if explainability is not None:
+            e = e * explainability[:, k : k + 1]
+        terms.append(_masked_mean(e, use))
+        err_map = err_map + e.detach() / n_src
+    return terms, err_map
+
+
+def smoothness_terms(disp: Tensor, image: Tensor, scale: int, cfg: LossConfig, wrap: bool) -> list[Tensor]:
+    """The smoothness terms of one scale: second-order (eq. 4) and image-aware, as configured.
+
+    ``disp [B,1,H_s,W_s]``, ``image [B,3,H_s,W_s]`` (the target at that scale); each weight is divided
+    by ``2^scale`` with ``cfg.smooth_scale_decay``.
+    """
+    decay = 2.0**scale if cfg.smooth_scale_decay else 1.0
+    terms = []
+    if cfg.smooth_weight > 0:
+        terms.append(cfg.smooth_weight / decay * second_order_smoothness(disp, wrap))
+    if cfg.image_smooth_weight > 0:
+        terms.append(
+            cfg.image_smooth_weight
+            / decay
+            * image_aware_smoothness(disp, image, wrap, cfg.image_smooth_order, cfg.smooth_mean_normalize)
+        )
+    return terms
+
+
+def warp_sources(
+    sources: Tensor, depth: Tensor, poses: Tensor, camera: Camera, wrap: bool
+) -> tuple[list[Tensor], list[Tensor]]:
+    """Every source ``[B,S,3,H,W]`` warped into the target with ``depth [B,1,H,W]`` and ``poses [B,S,4,4]``.
+
+    Returns per source ``(warped [B,3,H,W], valid [B,1,H,W] as depth's dtype)``.
+    """
+    warps, valids = [], []
+    for k in range(sources.shape[1]):
+        warped, valid = inverse_warp(sources[:, k], depth, poses[:, k], camera, wrap=wrap)
+        warps.append(warped)
+        valids.append(valid.to(depth.dtype))
+    return warps, valids
+
+
 def view_synthesis_loss(
     target: Tensor,
     sources: Tensor,
@@ -226,6 +340,10 @@ def view_synthesis_loss(
     source_pyramid: list[Tensor] | None = None,
 ) -> LossOutput:
     """The multi-scale objective of eq. 1 (and its improved variants, per ``config``).
+
+    Per scale: warp every source with the disparity, take the photometric term (the paper's per-source
+    sum, :func:`per_source_terms`, or the per-pixel minimum, :func:`min_reprojection_term`), the
+    explainability regulariser and the smoothness (:func:`smoothness_terms`); sum over scales.
 
     Args:
         target: ``[B,3,H,W]`` target images in [0, 1].
@@ -245,90 +363,46 @@ def view_synthesis_loss(
         :class:`LossOutput` with terms ``photometric``, ``smooth``, ``explain`` and ``total``.
     """
     cfg = config or LossConfig()
-    if wrap is None:
-        wrap = camera.wraps
+    wrap = camera.wraps if wrap is None else wrap
     b, n_src = sources.shape[:2]
-    if poses.shape != (b, n_src, 4, 4):
-        raise ValueError(f"poses must be [B,S,4,4] = [{b},{n_src},4,4], got {tuple(poses.shape)}")
+    check_shape(poses, f"{b},{n_src},4,4", "poses")
     if cfg.min_reprojection and explainability is not None and cfg.explain_weight > 0:
-        raise ValueError("explainability masks and minimum reprojection are alternatives: use one")
-    full_size = tuple(target.shape[-2:])
+        raise InputError("explainability masks and minimum reprojection are alternatives: use one")
     sizes = [tuple(d.shape[-2:]) for d in disparities]
-    photo_sizes = [full_size] * len(sizes) if cfg.full_resolution else sizes
-    if target_pyramid is None:
-        target_pyramid = image_pyramid(target, sizes)
-    if source_pyramid is None:
-        source_pyramid = image_pyramid(sources, photo_sizes)
+    photo_sizes = [tuple(target.shape[-2:])] * len(sizes) if cfg.full_resolution else sizes
+    target_pyramid = target_pyramid if target_pyramid is not None else image_pyramid(target, sizes)
+    source_pyramid = source_pyramid if source_pyramid is not None else image_pyramid(sources, photo_sizes)
     photo_targets = [target] * len(sizes) if cfg.full_resolution else target_pyramid
-    cams: dict[tuple[int, int], Camera] = {}
-    identity: dict[tuple[int, int], list[Tensor]] = {}  # errors without warping, per size (auto-masking)
-
-    def identity_errors(size: tuple[int, int], tgt: Tensor, src: Tensor) -> list[Tensor]:
-        if size not in identity:  # the same at every scale of a full-resolution loss: computed once
-            with torch.no_grad():
-                identity[size] = [
-                    photometric_error(tgt, src[:, k], cfg.ssim_weight, wrap) for k in range(n_src)
-                ]
-        return identity[size]
-
+    identity = _IdentityErrors(cfg.ssim_weight, wrap) if cfg.automask else None
     zero = target.new_zeros(())
     photometric, smooth, explain = zero, zero, zero
     warped_log, error_log = None, None
     for s, disp in enumerate(disparities):
         h, w = photo_sizes[s]
-        if (h, w) not in cams:
-            cams[(h, w)] = camera.resized(w, h) if (w, h) != camera.size else camera
-        cam = cams[(h, w)]
+        cam = camera.resized(w, h) if (w, h) != camera.size else camera
         disp_p = resize_image(disp, (h, w), wrap) if cfg.full_resolution else disp
         depth = 1.0 / disp_p.clamp(min=1e-6)
-        tgt = photo_targets[s]
-        src = source_pyramid[s]
+        tgt, src = photo_targets[s], source_pyramid[s]
         weight = torch.ones_like(depth)
         if static_mask is not None:
             weight = weight * image_pyramid(static_mask.to(depth.dtype), [(h, w)])[0]
-        errors, valids, warps = [], [], []
-        for k in range(n_src):
-            warped, valid = inverse_warp(src[:, k], depth, poses[:, k], cam, wrap=wrap)
-            errors.append(photometric_error(tgt, warped, cfg.ssim_weight, wrap))
-            valids.append(valid.to(depth.dtype))
-            warps.append(warped)
+        warps, valids = warp_sources(src, depth, poses, cam, wrap)
+        errors = [photometric_error(tgt, warped, cfg.ssim_weight, wrap) for warped in warps]
+        ident = identity(tgt, src) if identity is not None else None
         if cfg.min_reprojection:
-            err = torch.cat(errors, 1)  # [B,S,H,W]
-            val = torch.cat(valids, 1)
-            big = err.detach().max() + 1
-            err = torch.where(val > 0, err, big)  # a source that cannot see a pixel never wins the minimum
-            best, _ = err.min(1, keepdim=True)
-            use = weight * (val.amax(1, keepdim=True))
-            if cfg.automask:
-                ident = torch.cat(identity_errors((h, w), tgt, src), 1)
-                ident = ident + 1e-5 * torch.randn_like(ident)  # break ties as monodepth2 does
-                use = use * (best < ident.min(1, keepdim=True).values).to(use.dtype)
-            photometric = photometric + _masked_mean(best, use)
-            err_map = best.detach()
+            term, err_map = min_reprojection_term(errors, valids, weight, ident)
+            photometric = photometric + term
         else:
-            err_map = torch.zeros_like(depth)
-            for k in range(n_src):
-                use = weight * valids[k]
-                if cfg.automask:
-                    ident = identity_errors((h, w), tgt, src)[k]
-                    use = use * (errors[k] < ident).to(use.dtype).detach()
-                e = errors[k]
-                if explainability is not None:
-                    e = e * resize_image(explainability[s][:, k : k + 1], (h, w), wrap)
-                photometric = photometric + _masked_mean(e, use)
-                err_map = err_map + e.detach() / n_src
+            masks = None if explainability is None else resize_image(explainability[s], (h, w), wrap)
+            terms, err_map = per_source_terms(errors, valids, weight, ident, masks)
+            for term in terms:
+                photometric = photometric + term
         if explainability is not None and cfg.explain_weight > 0:
             explain = explain + cfg.explain_weight * n_src * explainability_loss(explainability[s])
-        decay = 2.0**s if cfg.smooth_scale_decay else 1.0
-        if cfg.smooth_weight > 0:
-            smooth = smooth + cfg.smooth_weight / decay * second_order_smoothness(disp, wrap)
-        if cfg.image_smooth_weight > 0:
-            smooth = smooth + cfg.image_smooth_weight / decay * image_aware_smoothness(
-                disp, target_pyramid[s], wrap, cfg.image_smooth_order, cfg.smooth_mean_normalize
-            )
+        for term in smoothness_terms(disp, target_pyramid[s], s, cfg, wrap):
+            smooth = smooth + term
         if s == 0:
-            warped_log = torch.stack(warps, 1).detach()
-            error_log = err_map
+            warped_log, error_log = torch.stack(warps, 1).detach(), err_map
     total = photometric + smooth + explain
     terms = {"photometric": photometric, "smooth": smooth, "explain": explain, "total": total}
     return LossOutput(total=total, terms=terms, warped=warped_log, error=error_log)

@@ -7,7 +7,7 @@ import os
 import pytest
 import torch
 
-from cylsfm.data.room import make_pose, render_room
+from cylsfm.data.synth.room import make_pose, render_room
 
 __all__ = ["make_pose", "render_room"]
 

@@ -64,10 +64,12 @@ def reading(path: str | os.PathLike[str], error: type[CylsfmError] = CylsfmError
     ...     open("no/such/file.txt").read()
     Traceback (most recent call last):
     ...
-    cylsfm.errors.CylsfmError: no/such/file.txt: cannot read (No such file or directory)
+    cylsfm.errors.CylsfmError: no/such/file.txt: not found
     """
     try:
         yield
+    except FileNotFoundError:
+        raise error(f"{path}: not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         raise error(f"{path}: cannot read ({reason})") from None

@@ -1,6 +1,6 @@
 import pytest
 
-from cylsfm.data.synthetic import SynthConfig, generate_dataset
+from cylsfm.data.synth import SynthConfig, generate_dataset
 
 
 @pytest.fixture(scope="session")

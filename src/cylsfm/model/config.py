@@ -13,7 +13,8 @@ from typing import Any
 
 import yaml
 
-from ..errors import CylsfmError
+from ..atomic import atomic_write_text
+from ..errors import InputError, reading
 from ..losses import LossConfig
 
 __all__ = [
@@ -31,7 +32,7 @@ __all__ = [
 ]
 
 
-class ConfigError(CylsfmError):
+class ConfigError(InputError):
     """A configuration file or override is invalid."""
 
 
@@ -205,7 +206,7 @@ def _build(cls: type, data: Any, where: str) -> Any:
         kwargs[name] = _build(sub, value, f"{where}.{name}") if sub else value
     try:
         return cls(**kwargs)
-    except CylsfmError:
+    except ConfigError:
         raise
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from None
@@ -241,21 +242,18 @@ def _merge(base: dict, update: Any, where: str) -> dict:
 def load_config(path: str | os.PathLike[str]) -> TrainConfig:
     """Read a YAML configuration (a preset name plus any fields to change)."""
     path = Path(path)
+    with reading(path, ConfigError):
+        text = path.read_text()
     try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: configuration file not found") from None
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read the configuration ({exc})") from None
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not a valid YAML configuration ({exc})") from None
     return config_from_dict(data or {}, where=str(path))
 
 
 def save_config(cfg: TrainConfig, path: str | os.PathLike[str]) -> None:
     """Write the resolved configuration as YAML, atomically."""
-    from ..atomic import atomic_write_bytes
-
-    text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False)
-    atomic_write_bytes(Path(path), text.encode())
+    atomic_write_text(path, yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
 
 
 def apply_overrides(cfg: TrainConfig, overrides: list[str]) -> TrainConfig:

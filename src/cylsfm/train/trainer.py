@@ -18,7 +18,6 @@ import json
 import math
 import os
 import random
-import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -33,13 +32,14 @@ from torch import Tensor, nn
 
 from ..data.dataset import AugmentConfig, SequenceDataset, StaticFilter, camera_of
 from ..data.format import load_mask
+from ..data.strips import StripDataset
 from ..errors import CylsfmError
 from ..geometry import Camera, pose_vec_to_mat
 from ..losses import image_pyramid, view_synthesis_loss
 from ..model.build import build_models
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.config import TrainConfig, config_from_dict, config_to_dict, save_config
-from ..runtime import pick_device
+from ..runtime import pick_device, progress_bar
 from .sampler import ResumableSampler, SeededDataset
 
 __all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "train"]
@@ -116,21 +116,7 @@ class Trainer:
         self._seed_everything(cfg.seed + self.dist.rank)
 
         # ---- data
-        self.dataset = SequenceDataset(
-            cfg.data.root,
-            seq_length=cfg.data.seq_length,
-            stride=cfg.data.stride,
-            split=cfg.data.split,
-            split_name=cfg.data.split_name,
-            size=(cfg.data.width, cfg.data.height),
-            augment=AugmentConfig(
-                mirror=cfg.data.mirror,
-                color_jitter=cfg.data.color_jitter,
-                roll=cfg.data.roll,
-                reverse=cfg.data.reverse,
-            ),
-            static=StaticFilter(cfg.data.static_filter, cfg.data.min_translation, cfg.data.min_image_diff),
-        )
+        self.dataset = self._dataset()
         if len(self.dataset) < cfg.batch_size * self.dist.world:
             raise CylsfmError(
                 f"{cfg.data.root}: only {len(self.dataset)} training samples for batch size {cfg.batch_size}"
@@ -173,9 +159,29 @@ class Trainer:
             save_config(cfg, self.run_dir / "config.yaml")
 
     # ------------------------------------------------------------------ set-up helpers
+    def _dataset(self) -> SequenceDataset | StripDataset:
+        """The training samples: dataset format v1, or the strips prepared for the original SfMLearner code
+        (a root with ``train.txt`` and no ``camera.json`` sequences; cylindrical intrinsics in ``cam.txt``)."""
+        d = self.cfg.data
+        augment = AugmentConfig(mirror=d.mirror, color_jitter=d.color_jitter, roll=d.roll, reverse=d.reverse)
+        root = Path(d.root)
+        if _is_strip_root(root):
+            split = d.split or "train"
+            return StripDataset(root, split, d.seq_length, "cylindrical", (d.width, d.height), augment)
+        return SequenceDataset(
+            d.root,
+            seq_length=d.seq_length,
+            stride=d.stride,
+            split=d.split,
+            split_name=d.split_name,
+            size=(d.width, d.height),
+            augment=augment,
+            static=StaticFilter(d.static_filter, d.min_translation, d.min_image_diff),
+        )
+
     def _check_size(self) -> None:
         from ..geometry import CylindricalCamera
-        from ..nn.dispnet import check_input_size
+        from ..nn.layers import check_input_size
 
         w, h = self.cfg.data.width, self.cfg.data.height
         if self.cfg.data.fov < 360:
@@ -380,52 +386,24 @@ class Trainer:
         cfg = self.cfg
         start_step, t0 = self.step, time.monotonic()
         deadline = t0 + cfg.minutes * 60 if cfg.minutes else math.inf
-        bar = None
-        # With a time budget the bar counts its seconds (so the ETA is the budget's end); otherwise steps.
-        by_time = cfg.minutes is not None
-        if progress and self.dist.main:
-            from tqdm import tqdm
-
-            if by_time:
-                bar = tqdm(total=round(cfg.minutes * 60), unit="s", dynamic_ncols=True, file=sys.stderr)
-            else:
-                bar = tqdm(
-                    total=cfg.max_steps, initial=self.step, unit="step", dynamic_ncols=True, file=sys.stderr
-                )
-        last_log, samples_since = time.monotonic(), 0
+        bar = _Progress(cfg, self.step, progress and self.dist.main)
+        self._last_log, self._samples_since = time.monotonic(), 0
         stopped = "max_steps"
-        loader = self._loader()
         try:
-            for batch in loader:
+            for batch in self._loader():
                 if self.step >= cfg.max_steps:
                     break
                 if time.monotonic() >= deadline:
                     stopped = "minutes"
                     break
                 scalars, visuals = self.train_step(batch)
-                samples_since += cfg.batch_size * self.dist.world
-                if self.step % cfg.log_every == 0 or self.step == 1:
-                    now = time.monotonic()
-                    self._log(scalars, visuals, samples_since / max(now - last_log, 1e-9))
-                    last_log, samples_since = now, 0
-                if cfg.image_every and self.step % cfg.image_every == 0:
-                    self._log_images(visuals)
-                if bar is not None:
-                    if by_time:
-                        bar.update(min(round(time.monotonic() - t0), bar.total) - bar.n)
-                        bar.set_postfix(step=self.step, loss=f"{scalars['total']:.4f}", refresh=False)
-                    else:
-                        bar.update(1)
-                        bar.set_postfix(loss=f"{scalars['total']:.4f}", refresh=False)
-                keep = cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0
-                if keep or (cfg.latest_every and self.step % cfg.latest_every == 0):
-                    self.save(keep=bool(keep))
+                self._after_step(scalars, visuals)
+                bar.update(self.step, scalars["total"])
         except KeyboardInterrupt:
             stopped = "interrupted"
             warnings.warn(f"interrupted at step {self.step}; saving a checkpoint", stacklevel=1)
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
         if stopped != "max_steps" or self.step > start_step:
             self.save(keep=False)
         if self.writer:
@@ -437,11 +415,54 @@ class Trainer:
             "run_dir": str(self.run_dir),
         }
 
+    def _after_step(self, scalars: dict[str, float], visuals: dict[str, Tensor]) -> None:
+        """Log the losses (every ``log_every`` steps and the first), images, and write checkpoints."""
+        cfg = self.cfg
+        self._samples_since += cfg.batch_size * self.dist.world
+        if self.step % cfg.log_every == 0 or self.step == 1:
+            now = time.monotonic()
+            self._log(scalars, visuals, self._samples_since / max(now - self._last_log, 1e-9))
+            self._last_log, self._samples_since = now, 0
+        if cfg.image_every and self.step % cfg.image_every == 0:
+            self._log_images(visuals)
+        keep = cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0
+        if keep or (cfg.latest_every and self.step % cfg.latest_every == 0):
+            self.save(keep=bool(keep))
+
     def close(self) -> None:
         if self.writer:
             self.writer.close()
         if self.dist.world > 1 and dist.is_initialized():
             dist.destroy_process_group()
+
+
+class _Progress:
+    """The training progress bar: with a time budget it counts the budget's seconds (so the ETA is the
+    budget's end), otherwise steps."""
+
+    def __init__(self, cfg: TrainConfig, step: int, enabled: bool) -> None:
+        self.by_time = cfg.minutes is not None
+        self.t0 = time.monotonic()
+        self.bar = None
+        if enabled:
+            total = round(cfg.minutes * 60) if self.by_time else cfg.max_steps
+            self.bar = progress_bar(total=total, unit="s" if self.by_time else "step", leave=True)
+            if not self.by_time:
+                self.bar.update(step)
+
+    def update(self, step: int, loss: float) -> None:
+        if self.bar is None:
+            return
+        if self.by_time:
+            self.bar.update(min(round(time.monotonic() - self.t0), self.bar.total) - self.bar.n)
+            self.bar.set_postfix(step=step, loss=f"{loss:.4f}", refresh=False)
+        else:
+            self.bar.update(1)
+            self.bar.set_postfix(loss=f"{loss:.4f}", refresh=False)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def train(
@@ -456,6 +477,11 @@ def train(
 
 
 # ----------------------------------------------------------------------------- RNG states as plain data
+def _is_strip_root(root: Path) -> bool:
+    """A dataset prepared for the original SfMLearner code: ``train.txt`` and no format-v1 sequences."""
+    return (root / "train.txt").is_file() and not any(root.glob("*/camera.json"))
+
+
 def _numpy_state_to_list(state: tuple) -> list:
     name, keys, pos, has_gauss, cached = state
     return [name, torch.from_numpy(np.asarray(keys, dtype=np.int64)), int(pos), int(has_gauss), float(cached)]

@@ -23,6 +23,7 @@ from .atomic import atomic_write_bytes
 from .data.format import load_depth, load_image, save_png
 from .data.splits import make_splits
 from .data.synthetic import generate_dataset
+from .errors import InputError
 
 __all__ = ["run_demo"]
 
@@ -39,13 +40,28 @@ def run_demo(
     eval_reserve_minutes: float = 2.0,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Run the demonstration into ``out``; returns the evaluation results."""
-    from .evaluate.depth import depth_json, evaluate_depth, format_depth_table
-    from .evaluate.pose import evaluate_pose, format_pose_table, pose_json
-    from .model import Predictor
-    from .model.config import apply_overrides, preset
-    from .train.trainer import train
+    """Run the demonstration into ``out``; returns the evaluation results.
 
+    Args:
+        out: output directory (``data/``, ``run/``, ``figures/``, ``report.md``, ``depth.json``,
+            ``pose.json``).
+        minutes: the whole budget; training gets what generating the data and ``eval_reserve_minutes``
+            leave of it (at least 6 seconds).
+        seed: seed of the synthetic data, its split and training.
+        width, height: size of the generated panoramas and of training (pixels).
+        sequences: synthetic rides (towns) to generate; ``test_sequences`` of them are held out for the
+            evaluation, one for validation, the rest (at least one) trained on.
+        frames: frames per ride.
+        eval_reserve_minutes: time kept for evaluating and writing the report.
+        progress: show progress bars.
+
+    Raises:
+        InputError: fewer than ``test_sequences + 2`` sequences.
+    """
+    if sequences < test_sequences + 2:
+        raise InputError(
+            f"--sequences must leave at least 2 rides for training and validation, got {sequences}"
+        )
     t0 = time.monotonic()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -53,11 +69,7 @@ def run_demo(
     print(
         f"[1/4] generating {sequences} synthetic rides of {frames} frames at {width}x{height} ...", flush=True
     )
-    if not (data / "splits" / "default" / "test.txt").exists():
-        generate_dataset(data, sequences=sequences, frames=frames, width=width, height=height, seed=seed,
-                         progress=progress, overwrite=True)  # fmt: skip
-        test_fraction = test_sequences / sequences
-        make_splits(data, mode="sequence", fractions=(1 - test_fraction - 1 / sequences, 1 / sequences, test_fraction), seed=seed)  # fmt: skip
+    _generate(data, sequences, test_sequences, frames, width, height, seed, progress)
     gen_minutes = (time.monotonic() - t0) / 60
     train_minutes = max(minutes - gen_minutes - eval_reserve_minutes, 0.1)
     print(f"      done in {gen_minutes:.1f} min", flush=True)
@@ -66,23 +78,16 @@ def run_demo(
         f"[2/4] training for {train_minutes:.1f} min (the default recipe, {width}x{height}, batch 4) ...",
         flush=True,
     )
-    cfg = apply_overrides(
-        preset("default"),
-        [f"data.root='{data}'", f"data.width={width}", f"data.height={height}", f"minutes={train_minutes}",
-         "data.workers=1", f"seed={seed}", "max_steps=1000000", "checkpoint_every=0"],
-    )  # fmt: skip
-    run = out / "run"
-    summary = train(cfg, run, resume=(run / "checkpoints" / "latest.pt").exists(), progress=progress)
+    cfg, summary = _train(data, out / "run", width, height, train_minutes, seed, progress)
     print(f"      {summary['steps']} steps in {summary['seconds'] / 60:.1f} min", flush=True)
 
     print("[3/4] evaluating on the held-out towns ...", flush=True)
-    predictor = Predictor.from_checkpoint(run, device="auto")
-    depth = evaluate_depth(predictor, data, split="test", prior_split="train")
-    pose = evaluate_pose(predictor, data, split="test", out=out / "trajectories")
-    atomic_write_bytes(out / "depth.json", json.dumps(depth_json(depth), indent=2).encode())
-    atomic_write_bytes(out / "pose.json", json.dumps(pose_json(pose), indent=2).encode())
+    predictor, depth, pose = _evaluate(out, data)
 
     print("[4/4] writing the report ...", flush=True)
+    from .evaluate.depth import depth_json, format_depth_table
+    from .evaluate.pose import format_pose_table, pose_json
+
     depth_table, pose_table = format_depth_table(depth), format_pose_table(pose)
     _write_report(
         out, cfg, summary, depth, pose, depth_table, pose_table, predictor, data, time.monotonic() - t0
@@ -93,6 +98,57 @@ def run_demo(
     print(pose_table)
     print(f"\nreport: {out / 'report.md'}  (total {(time.monotonic() - t0) / 60:.1f} min)")
     return {"depth": depth_json(depth), "pose": pose_json(pose), "train": summary}
+
+
+def _generate(
+    data: Path,
+    sequences: int,
+    test_sequences: int,
+    frames: int,
+    width: int,
+    height: int,
+    seed: int,
+    progress: bool,
+) -> None:
+    """The synthetic rides in ``data``, split by sequence: ``test_sequences`` test towns, one validation
+    town, the others for training. Skipped when ``data`` already holds its test split."""
+    if (data / "splits" / "default" / "test.txt").exists():
+        return
+    generate_dataset(data, sequences=sequences, frames=frames, width=width, height=height, seed=seed,
+                     progress=progress, overwrite=True)  # fmt: skip
+    test_fraction = test_sequences / sequences
+    fractions = (1 - test_fraction - 1 / sequences, 1 / sequences, test_fraction)
+    make_splits(data, mode="sequence", fractions=fractions, seed=seed)
+
+
+def _train(data: Path, run: Path, width: int, height: int, minutes: float, seed: int, progress: bool):
+    """Train the default recipe on ``data`` into ``run`` for ``minutes`` (resuming a run that is there);
+    returns the configuration and the trainer's summary."""
+    from .model.config import apply_overrides, preset
+    from .train.trainer import train
+
+    cfg = apply_overrides(
+        preset("default"),
+        [f"data.root='{data}'", f"data.width={width}", f"data.height={height}", f"minutes={minutes}",
+         "data.workers=1", f"seed={seed}", "max_steps=1000000", "checkpoint_every=0"],
+    )  # fmt: skip
+    summary = train(cfg, run, resume=(run / "checkpoints" / "latest.pt").exists(), progress=progress)
+    return cfg, summary
+
+
+def _evaluate(out: Path, data: Path):
+    """Depth and ego-motion of the trained run on the test towns (``depth.json``, ``pose.json``,
+    ``trajectories/``); returns the predictor and both results."""
+    from .evaluate.depth import depth_json, evaluate_depth
+    from .evaluate.pose import evaluate_pose, pose_json
+    from .model import Predictor
+
+    predictor = Predictor.from_checkpoint(out / "run", device="auto")
+    depth = evaluate_depth(predictor, data, split="test", prior_split="train")
+    pose = evaluate_pose(predictor, data, split="test", out=out / "trajectories")
+    atomic_write_bytes(out / "depth.json", json.dumps(depth_json(depth), indent=2).encode())
+    atomic_write_bytes(out / "pose.json", json.dumps(pose_json(pose), indent=2).encode())
+    return predictor, depth, pose
 
 
 def _write_report(out, cfg, summary, depth, pose, depth_table, pose_table, predictor, data, seconds) -> None:
@@ -111,7 +167,7 @@ def _write_report(out, cfg, summary, depth, pose, depth_table, pose_table, predi
         seq = seqs[seq_name]
         idx = [p.stem for p in seq.images].index(stem)
         rows.append(_picture(predictor, seq, idx, figures / f"{seq_name}_{stem}.png"))
-    m, b = depth.get("model", depth), depth.get("baselines", {})
+    b = depth.get("baselines", {})
     model_abs = _get(depth, "abs_rel")
     const_abs = _get(b.get("constant") or {}, "abs_rel")
     row_abs = _get(b.get("per_row") or {}, "abs_rel")
@@ -155,7 +211,6 @@ def _write_report(out, cfg, summary, depth, pose, depth_table, pose_table, predi
         "The run directory `run/` holds the configuration, the checkpoints and the TensorBoard logs "
         "(`tensorboard --logdir run/tb`).",
     ]
-    del m
     atomic_write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode())
 
 

@@ -1,0 +1,57 @@
+"""The ``cylsfm`` command: one entry point, one subcommand per job, one module per subcommand.
+
+Subcommands register themselves in :data:`~cylsfm.cli.base.COMMANDS` (``camera``, ``synth``, ``train``,
+``predict``, ``evaluate``, ``demo``); heavy imports happen inside their run functions so that
+``cylsfm --help`` is fast. Problems with the user's input (:class:`cylsfm.errors.CylsfmError`, which the
+library raises for invalid arguments too) are reported as one line naming the file and the problem, with
+exit status 2, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .. import __version__
+from ..errors import CylsfmError
+from . import camera, demo, evaluate, predict, synth, train  # noqa: F401  (register the subcommands)
+from .base import COMMANDS, Command, command, parse_size
+from .train import train_config_from_args
+
+#: The order in which ``cylsfm --help`` lists the subcommands: the order of the work.
+ORDER = ("camera", "synth", "train", "predict", "evaluate", "demo")
+
+__all__ = ["COMMANDS", "Command", "build_parser", "command", "main", "parse_size", "train_config_from_args"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``cylsfm`` argument parser with every registered subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="cylsfm",
+        description="Self-supervised depth and ego-motion from 360-degree cylindrical panoramic video.",
+    )
+    parser.add_argument("--version", action="version", version=f"cylsfm {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in sorted(COMMANDS, key=lambda n: ORDER.index(n) if n in ORDER else len(ORDER)):
+        cmd = COMMANDS[name]
+        p = sub.add_parser(name, help=cmd.help, description=cmd.help)
+        cmd.add_arguments(p)
+        p.set_defaults(_run=cmd.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``cylsfm ARGS``; returns the exit status (0, 2 for bad input, 130 when interrupted)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 0
+    try:
+        return int(args._run(args) or 0)
+    except CylsfmError as exc:
+        print(f"cylsfm {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"cylsfm {args.command}: interrupted", file=sys.stderr)
+        return 130

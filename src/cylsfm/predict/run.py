@@ -1,0 +1,207 @@
+"""Running ``cylsfm predict``: every input's frames through the network, in batches, to files."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..data.convert import to_cylinder
+from ..data.format import save_depth, save_png
+from ..errors import CylsfmError
+from ..export.colorize import colorize_depth, side_by_side
+from ..geometry import Camera, load_camera
+from ..model import Predictor
+from ..runtime import progress_bar
+from .cameras import Plan, model_vfov_h, plan_input
+from .inputs import InputSource, discover_inputs, expected_frames, read_frames
+from .video import FALLBACK_RATE, VideoWriter
+
+__all__ = ["PredictSummary", "predict"]
+
+PlanFor = Callable[[InputSource, tuple[int, int]], Plan]
+
+
+@dataclass
+class PredictSummary:
+    """What :func:`predict` wrote: frames per input name, and the preview videos."""
+
+    frames: dict[str, int] = field(default_factory=dict)
+    videos: list[Path] = field(default_factory=list)
+
+    @property
+    def total(self) -> int:
+        return sum(self.frames.values())
+
+
+def _to_uint8(images: torch.Tensor) -> np.ndarray:
+    """``[B,3,H,W]`` in [0, 1] -> ``uint8 [B,H,W,3]``."""
+    return (images.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+
+
+def _camera_arg(camera: str | os.PathLike[str] | Camera | None) -> tuple[Camera | None, str | None]:
+    """The camera of every input and how messages name it."""
+    if camera is None:
+        return None, None
+    if isinstance(camera, Camera):
+        return camera, "the given camera"
+    return load_camera(camera), str(camera)
+
+
+def predict(
+    checkpoint: str | os.PathLike[str] | Predictor,
+    inputs: Sequence[str | os.PathLike[str]],
+    out: str | os.PathLike[str],
+    camera: str | os.PathLike[str] | Camera | None = None,
+    batch_size: int = 8,
+    device: str = "auto",
+    png: bool = True,
+    fps: float | None = None,
+    progress: bool = True,
+) -> PredictSummary:
+    """Predict depth for images, image folders and videos; see :mod:`cylsfm.predict` for the outputs.
+
+    Args:
+        checkpoint: a checkpoint file, a run directory, or a ready :class:`~cylsfm.model.Predictor`.
+        inputs: image files, folders of images and video files.
+        out: output directory (created).
+        camera: the camera of every input (a ``camera.json`` path or a camera); ``None``: inputs must be
+            full cylindrical panoramas of the model's aspect ratio.
+        batch_size: frames per network call.
+        device: ``auto``, ``cpu``, ``cuda``, ``cuda:N`` (ignored for a ready predictor).
+        png: also write the coloured depth pictures.
+        fps: take about this many frames a second from videos (and give the preview this rate); ``None``:
+            every frame, at the video's own rate.
+        progress: show a progress bar on stderr.
+
+    Raises:
+        CylsfmError: an input is missing, unreadable or corrupt, or its camera does not suit the model;
+            the message names the file. Every input's cameras are checked before anything is written.
+    """
+    if batch_size < 1:
+        raise CylsfmError(f"--batch-size must be at least 1, got {batch_size}")
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise CylsfmError(f"--fps must be a positive number, got {fps}")
+    sources = discover_inputs(inputs)
+    cam, camera_path = _camera_arg(camera)
+    predictor = (
+        checkpoint if isinstance(checkpoint, Predictor) else Predictor.from_checkpoint(checkpoint, device)
+    )
+    vfov_h = model_vfov_h(predictor.config)
+    plans: dict[tuple[str, tuple[int, int]], Plan] = {}
+
+    def plan_for(source: InputSource, size: tuple[int, int]) -> Plan:
+        key = (source.name, size)
+        if key not in plans:
+            plans[key] = plan_input(source.path, size, predictor, vfov_h, cam, camera_path)
+        return plans[key]
+
+    for source in sources:  # refuse unsuitable inputs before writing anything
+        for size in source.sizes:
+            plan_for(source, size)
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    total = expected_frames(sources, fps)
+    bar = progress_bar(total=total, desc="predict", unit="frame", enabled=progress, leave=True)
+    summary = PredictSummary()
+    try:
+        with torch.inference_mode():
+            for source in sources:
+                _run_source(source, plan_for, predictor, out, batch_size, png, fps, bar, summary)
+    finally:
+        bar.close()
+    return summary
+
+
+def _run_source(
+    source: InputSource,
+    plan_for: PlanFor,
+    predictor: Predictor,
+    out: Path,
+    batch_size: int,
+    png: bool,
+    fps: float | None,
+    bar: Any,
+    summary: PredictSummary,
+) -> None:
+    """All frames of one input, ``batch_size`` frames of one size at a time."""
+    dest = out / source.name
+    dest.mkdir(parents=True, exist_ok=True)
+    summary.frames[source.name] = 0
+    writer = None
+    if source.kind == "video":
+        rate = Fraction(fps).limit_denominator(1001) if fps else (source.rate or FALLBACK_RATE)
+        writer = VideoWriter(out / f"{source.name}.mp4", rate)
+    batch: list[tuple[str, np.ndarray]] = []
+
+    def flush() -> None:
+        if batch:
+            h, w = batch[0][1].shape[:2]
+            _run_batch(batch, plan_for(source, (w, h)), predictor, dest, png, writer)
+            summary.frames[source.name] += len(batch)
+            bar.update(len(batch))
+            batch.clear()
+
+    try:
+        for stem, rgb in read_frames(source, fps):
+            if batch and batch[0][1].shape != rgb.shape:
+                flush()
+            batch.append((stem, rgb))
+            if len(batch) >= batch_size:
+                flush()
+        flush()
+        if writer is not None and writer.close():
+            summary.videos.append(writer.path)
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+
+
+def network_images(batch: Sequence[np.ndarray], plan: Plan, device: torch.device) -> torch.Tensor:
+    """``uint8 [H,W,3]`` frames -> ``[B,3,H',W']`` in [0, 1] on ``device``, in ``plan.network_input``.
+
+    Frames go to the device as ``uint8`` (4x less to copy) and are converted one at a time, so that large
+    360-degree frames never sit on the device as a whole batch.
+    """
+    frames = []
+    for rgb in batch:
+        x = torch.from_numpy(np.require(rgb, np.uint8, ["C", "W"])).to(device).permute(2, 0, 1)[None].float()
+        x = x / 255
+        if plan.convert_to is not None:
+            x = to_cylinder(x, plan.camera, plan.convert_to).clamp(0, 1)
+        frames.append(x)
+    return torch.cat(frames)
+
+
+def _run_batch(
+    batch: list[tuple[str, np.ndarray]],
+    plan: Plan,
+    predictor: Predictor,
+    dest: Path,
+    png: bool,
+    writer: VideoWriter | None,
+) -> None:
+    """Depth of one batch of frames of one size: ``DEST/FRAME.npy`` (and ``.png``, the video preview)."""
+    images = network_images([rgb for _, rgb in batch], plan, predictor.device)
+    cam = plan.network_input
+    depth = predictor.depth(images, cam)[:, 0].float().cpu().numpy()
+    shown = None
+    if writer is not None:
+        win = predictor.window(cam)
+        shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
+    for i, (stem, _) in enumerate(batch):
+        save_depth(dest / f"{stem}.npy", depth[i])
+        colour = colorize_depth(depth[i]) if (png or writer is not None) else None
+        if png:
+            save_png(dest / f"{stem}.png", colour)
+        if writer is not None and shown is not None:
+            writer.write(side_by_side([shown[i], colour]))

@@ -1,0 +1,46 @@
+"""The registry of ``cylsfm`` subcommands and the argument types they share.
+
+Each command module registers itself with :func:`command`: a function that adds its arguments to its
+``argparse`` parser, and a function that runs it. Run functions import what they need when they run, so
+that ``cylsfm --help`` starts fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
+
+__all__ = ["COMMANDS", "Command", "command", "parse_size"]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One subcommand: its one-line help, its argument builder and its run function."""
+
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int | None]
+
+
+#: The subcommands by name, in the order ``cylsfm --help`` lists them.
+COMMANDS: dict[str, Command] = {}
+
+
+def command(name: str, help: str, add_arguments: Callable[[argparse.ArgumentParser], None]):
+    """Decorator registering ``run(args)`` as the subcommand ``name``."""
+
+    def register(run: Callable[[argparse.Namespace], int | None]):
+        COMMANDS[name] = Command(help, add_arguments, run)
+        return run
+
+    return register
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"512x128"`` -> ``(512, 128)`` (width, height in pixels); an ``argparse`` type."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 512x128, got {text!r}") from None
+    return w, h

@@ -1,0 +1,43 @@
+"""``cylsfm predict``: depth maps for panoramic images, folders and videos with a trained model."""
+
+from __future__ import annotations
+
+import argparse
+
+from .base import command
+
+
+def _predict_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="image files, folders of images, videos")
+    p.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
+    p.add_argument("--out", required=True, help="output directory: OUT/NAME/FRAME.npy|png, OUT/NAME.mp4")
+    p.add_argument(
+        "--camera",
+        help="camera.json of the inputs (cylindrical, equirectangular or pinhole); without it inputs must be "
+        "full 360-degree cylindrical panoramas of the model's aspect ratio. Inputs that are not full "
+        "panoramas (pinhole photographs, partial panoramas) are taken only when they cover the view of a "
+        "model trained on crops (train --fov)",
+    )
+    p.add_argument("--batch-size", type=int, default=8, help="frames per network call (default 8)")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.add_argument("--no-png", action="store_true", help="do not write coloured depth pictures")
+    p.add_argument("--fps", type=float, help="take about N frames a second from videos (default: all)")
+
+
+@command("predict", "depth maps for panoramic images, folders and videos with a trained model", _predict_args)
+def run_predict(args: argparse.Namespace) -> int:
+    from ..predict import predict
+
+    summary = predict(
+        args.checkpoint,
+        args.inputs,
+        args.out,
+        camera=args.camera,
+        batch_size=args.batch_size,
+        device=args.device,
+        png=not args.no_png,
+        fps=args.fps,
+    )
+    videos = f" and {len(summary.videos)} preview video(s)" if summary.videos else ""
+    print(f"wrote {summary.total} depth maps of {len(summary.frames)} input(s){videos} to {args.out}")
+    return 0

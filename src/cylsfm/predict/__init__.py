@@ -1,0 +1,60 @@
+"""Depth maps for images, image folders and videos with a trained checkpoint (``cylsfm predict``).
+
+Inputs are image files (png, jpg ...), folders (every image directly inside, sorted by name) and videos
+(anything PyAV decodes: mp4, mkv, mov, webm ...). For an input named ``NAME`` (its file stem or folder
+name; a second input of the same name becomes ``NAME-2``) the outputs are::
+
+    OUT/NAME/FRAME.npy   float32 [H,W] depth in the network's (unknown) scale, > 0
+    OUT/NAME/FRAME.png   the depth coloured by inverse depth (near = bright; cylsfm.export.colorize)
+    OUT/NAME.mp4         videos only: input frame above its coloured depth (h264, or mpeg4 without libx264)
+
+``FRAME`` is an image's file stem, or a video frame's 6-digit index in the video (counted before ``fps``
+subsampling). Every file is written atomically (a temporary file, then ``os.replace``), so an interrupted or
+failed run leaves complete files only; frames already written stay.
+
+Cameras (:mod:`cylsfm.predict.cameras`). Without a camera file, an input must be a full 360-degree
+cylindrical panorama of the training aspect ratio; its depth comes back at its own resolution. With a
+camera file (``camera.json``, see ``cylsfm camera``): a full cylindrical panorama of the training vertical
+field of view is used as it is; any other input (an equirectangular 360-degree image, a cylinder of another
+vertical field of view, a partial panorama or a pinhole photograph) is first resampled
+(:func:`cylsfm.data.convert.to_cylinder`) into the model's cylinder at the network's input size, and its
+depth (and the video preview) is at that size. Inputs that are not full panoramas are taken only when they
+cover at least :data:`~cylsfm.predict.cameras.MIN_COVERAGE` of what the network sees: so a pinhole view
+only by a model trained on crops (``cylsfm train --fov``) that it covers.
+
+For a model trained on centred crops (``data.fov < 360``) the depth covers the crop the network sees.
+
+Modules: :mod:`~cylsfm.predict.inputs` (finding and reading the inputs), :mod:`~cylsfm.predict.video`
+(PyAV decoding and the preview writer), :mod:`~cylsfm.predict.cameras` (what the model takes),
+:mod:`~cylsfm.predict.run` (the loop).
+"""
+
+from .cameras import (
+    ASPECT_TOLERANCE,
+    DEFAULT_VFOV_H,
+    MIN_COVERAGE,
+    Plan,
+    coverage,
+    model_camera,
+    model_vfov_h,
+    plan_input,
+)
+from .inputs import IMAGE_FILE_SUFFIXES, InputSource, discover_inputs, read_frames
+from .run import PredictSummary, predict
+
+__all__ = [
+    "ASPECT_TOLERANCE",
+    "DEFAULT_VFOV_H",
+    "IMAGE_FILE_SUFFIXES",
+    "MIN_COVERAGE",
+    "InputSource",
+    "Plan",
+    "PredictSummary",
+    "coverage",
+    "discover_inputs",
+    "model_camera",
+    "model_vfov_h",
+    "plan_input",
+    "predict",
+    "read_frames",
+]

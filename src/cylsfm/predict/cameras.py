@@ -1,0 +1,172 @@
+"""Which inputs a model can take, and how they reach it: the model's cylinder and each input's plan.
+
+The networks expect the panoramas they were trained on: full 360-degree cylindrical panoramas whose rows
+span ``h`` in ``[-vfov_h, vfov_h]`` (:func:`model_vfov_h`) with the training aspect ratio; for a model
+trained on centred crops (``data.fov < 360``), the network sees only the crop of them.
+
+* Without a camera, an input must have that aspect ratio (width/height within :data:`ASPECT_TOLERANCE`);
+  it is taken as ``CylindricalCamera.full(w, h, vfov_h)``.
+* A full cylindrical panorama of the training vertical field of view is used as it is.
+* Any other camera (an equirectangular 360-degree image, a cylinder of another vertical field of view, a
+  partial panorama, a pinhole photograph) is resampled (:func:`cylsfm.data.convert.to_cylinder`) into the
+  model's cylinder (:func:`model_camera`) at the network's input size, when it covers at least
+  :data:`MIN_COVERAGE` of the pixels the network sees. A full 360-degree source always does. A pinhole
+  view never covers half of a full panorama: a model trained on full panoramas would see mostly blank
+  panorama, which it has never seen, so it refuses pinhole input; a model trained on a crop takes a
+  pinhole view (or a partial panorama) that covers the crop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from ..data.convert import to_cylinder
+from ..errors import CylsfmError
+from ..geometry import Camera, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
+from ..model import Predictor
+
+__all__ = [
+    "ASPECT_TOLERANCE",
+    "DEFAULT_VFOV_H",
+    "MIN_COVERAGE",
+    "Plan",
+    "coverage",
+    "model_camera",
+    "model_vfov_h",
+    "plan_input",
+]
+
+#: Relative tolerance on the aspect ratio (and vertical field of view) matching the model's.
+ASPECT_TOLERANCE = 0.02
+#: Vertical half-extent ``vfov_h`` of the training panoramas when the training data does not say otherwise.
+DEFAULT_VFOV_H = 1.0
+#: Smallest fraction of the network's view that a converted input must cover (the rest would be blank).
+MIN_COVERAGE = 0.9
+
+
+def model_vfov_h(config: Any) -> float:
+    """The vertical extent ``vfov_h`` (rows span ``h`` in ``[-vfov_h, vfov_h]``) the model was trained on.
+
+    Recorded in the configuration when training starts (``config.data.vfov_h``); for older configurations
+    read from the training dataset's ``camera.json`` (``height / (2 fy)``) when ``config.data.root`` is still
+    there and holds a cylindrical camera; otherwise :data:`DEFAULT_VFOV_H` (1.0, +-45 degrees: the
+    cameras of ``cylsfm synth`` and of the paper's preparation). Checkpoints store no camera.
+    """
+    recorded = getattr(getattr(config, "data", None), "vfov_h", None)
+    if recorded:
+        return float(recorded)
+    root = getattr(getattr(config, "data", None), "root", "") or ""
+    if root:
+        try:
+            from ..data.format import find_sequence_dirs
+
+            cam = load_camera(find_sequence_dirs(root)[0] / "camera.json")
+            if isinstance(cam, CylindricalCamera) and cam.wraps:
+                return float(cam.height) / (2.0 * float(cam.fy))
+        except (CylsfmError, OSError):
+            pass
+    return DEFAULT_VFOV_H
+
+
+def model_camera(predictor: Predictor, vfov_h: float | None = None) -> CylindricalCamera:
+    """The full 360-degree cylinder the model expects, at the network's input size.
+
+    ``CylindricalCamera.full(W, H, vfov_h)`` with ``(W, H)`` the network's input size (for a model trained
+    on ``fov``-degree crops, ``W`` is the full turn around them: ``config.data.width`` is the panorama's
+    width, the crop comes after it). ``vfov_h`` defaults to :func:`model_vfov_h` of the checkpoint's
+    configuration.
+    """
+    if vfov_h is None:
+        vfov_h = model_vfov_h(predictor.config)
+    return CylindricalCamera.full(predictor.size[0], predictor.size[1], vfov_h)
+
+
+def _aspect_ok(a: float, b: float) -> bool:
+    return abs(a / b - 1.0) <= ASPECT_TOLERANCE
+
+
+def coverage(camera: Camera, target: CylindricalCamera, window: tuple[int, int] | None) -> float:
+    """Fraction (0..1) of the pixels of ``target`` in columns ``window`` (all: ``None``) that ``camera``
+    sees, as :func:`~cylsfm.data.convert.to_cylinder` samples them (one ray a pixel)."""
+    ones = torch.ones(1, 1, camera.height, camera.width)
+    _, mask = to_cylinder(ones, camera, target, supersample=1, return_mask=True)
+    if window is not None:
+        mask = mask[..., window[0] : window[1]]
+    return float(mask.float().mean())
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How frames of one size reach the network: their camera, and the cylinder they are converted to."""
+
+    camera: Camera
+    convert_to: CylindricalCamera | None = None
+
+    @property
+    def network_input(self) -> Camera:
+        """The camera of the frames given to the :class:`~cylsfm.model.Predictor`."""
+        return self.convert_to if self.convert_to is not None else self.camera
+
+
+def _checked_coverage(cam: Camera, target: CylindricalCamera, predictor: Predictor, camera_path: str) -> None:
+    covered = coverage(cam, target, predictor.window(target))
+    if covered >= MIN_COVERAGE:
+        return
+    view = "full 360-degree panoramas" if predictor.fov >= 360 else f"{predictor.fov:g}-degree crops"
+    elevation = math.degrees(math.atan(target.height / (2.0 * float(target.fy))))
+    raise CylsfmError(
+        f"{camera_path}: this {cam.model} camera covers {covered:.0%} of the view of the model, which was "
+        f"trained on {view} of cylindrical panoramas (elevation within +-{elevation:.0f} degrees); "
+        f"at least {MIN_COVERAGE:.0%} is needed, the rest would be blank. Give it 360-degree footage "
+        f"(equirectangular or cylindrical), or use a model trained on a crop the camera covers "
+        f"(cylsfm train --fov DEG)"
+    )
+
+
+def plan_input(
+    path: object,
+    size: tuple[int, int],
+    predictor: Predictor,
+    vfov_h: float,
+    camera: Camera | None,
+    camera_path: str | None,
+) -> Plan:
+    """The :class:`Plan` of frames of ``size`` ``(W, H)`` from input ``path``, seen by ``camera``.
+
+    Raises:
+        CylsfmError: the frames do not suit the model (see the module docstring); the message names the
+            input or the camera file.
+    """
+    w, h = size
+    target = model_camera(predictor, vfov_h)
+    want = target.width / target.height
+    if camera is None:
+        if not _aspect_ok(w / h, want):
+            raise CylsfmError(
+                f"{path}: frames are {w}x{h} (aspect {w / h:.3f}) but the model takes full 360-degree "
+                f"cylindrical panoramas of aspect {want:.3f} (width/height, e.g. {target.width}x{target.height}); "
+                f"for other footage pass --camera camera.json describing it (cylindrical, equirectangular, or "
+                f"pinhole for a model trained on crops; see 'cylsfm camera')"
+            )
+        return Plan(CylindricalCamera.full(w, h, vfov_h))
+    cam = camera
+    if cam.size != (w, h):
+        if not _aspect_ok((w / h), cam.width / cam.height):
+            raise CylsfmError(
+                f"{path}: frames are {w}x{h} but {camera_path} describes {cam.width}x{cam.height} images"
+            )
+        cam = cam.resized(w, h)
+    if not isinstance(cam, CylindricalCamera | EquirectangularCamera | PinholeCamera):
+        raise CylsfmError(f"{camera_path}: unsupported camera model {cam.model!r}")
+    if isinstance(cam, CylindricalCamera) and cam.wraps:
+        cam_vfov = cam.height / (2.0 * float(cam.fy))
+        centred = abs(float(cam.cy) - (cam.height - 1) / 2) <= 0.01 * cam.height
+        if centred and _aspect_ok(cam_vfov, vfov_h):
+            return Plan(cam)
+    if not cam.wraps:
+        _checked_coverage(cam, target, predictor, str(camera_path))
+    return Plan(cam, convert_to=target)

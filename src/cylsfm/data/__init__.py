@@ -1,20 +1,16 @@
-"""Datasets, loaders and synthetic scenes."""
+"""Datasets, loaders and synthetic scenes.
 
-from .dataset import (
-    NUM_SCALES,
-    AugmentConfig,
-    SequenceDataset,
-    StaticFilter,
-    build_sample,
-    camera_class,
-    camera_of,
-    intrinsics_pyramid,
-)
-from .format import (
+The files of the format (:mod:`.io`) and its directory layout (:mod:`.format`), split files
+(:mod:`.splits`), samples (:mod:`.sample`) and their augmentation (:mod:`.augment`), static-frame removal
+(:mod:`.static`), the datasets (:mod:`.dataset`, :mod:`.strips`), resampling into a cylinder
+(:mod:`.convert`) and synthetic data (:mod:`.synth`).
+"""
+
+from .augment import AugmentConfig
+from .dataset import SequenceDataset
+from .format import DatasetWarning, SequenceInfo, SequenceWriter, scan_dataset
+from .io import (
     DatasetError,
-    DatasetWarning,
-    SequenceInfo,
-    SequenceWriter,
     atomic_write_bytes,
     load_depth,
     load_image,
@@ -22,10 +18,11 @@ from .format import (
     read_tum,
     save_depth,
     save_png,
-    scan_dataset,
     write_tum,
 )
+from .sample import NUM_SCALES, build_sample, camera_class, camera_of, intrinsics_pyramid
 from .splits import make_splits, read_split, snippet_offsets, split_path
+from .static import StaticFilter
 from .strips import StripDataset, read_cam_txt
 
 __all__ = [

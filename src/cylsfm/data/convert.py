@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..errors import InputError
 from ..geometry import Camera, CylindricalCamera, sample_image
 
 __all__ = ["plan_resampling", "to_cylinder"]
@@ -50,7 +51,7 @@ def plan_resampling(
     ``[1, 2)`` averaged source pixels apart (when ``r >= 1``; upsampling uses ``s = k = 1``).
     """
     if max_supersample < 1:
-        raise ValueError(f"max_supersample must be >= 1, got {max_supersample}")
+        raise InputError(f"max_supersample must be >= 1, got {max_supersample}")
     out_s, out_k = [], []
     for name in ("fx", "fy"):
         r = _max_float(getattr(src_camera, name)) / _max_float(getattr(dst_camera, name))
@@ -96,57 +97,71 @@ def to_cylinder(
         have a source (inside the source vertically, horizontally unless it wraps, and in front of a pinhole
         camera); its colour is the mean of those samples. Invalid pixels are 0.
     """
-    if image.dim() != 4:
-        raise ValueError(f"image must be [B,C,H,W], got {tuple(image.shape)}")
-    if not isinstance(dst_camera, CylindricalCamera):
-        raise TypeError(f"dst_camera must be a CylindricalCamera, got {type(dst_camera).__name__}")
-    b, _, h, w = image.shape
-    if (w, h) != src_camera.size:
-        raise ValueError(f"image is {w}x{h} but src_camera is {src_camera.width}x{src_camera.height}")
-    if wrap is None:
-        wrap = src_camera.wraps
-    elif wrap and not src_camera.wraps:
-        raise ValueError("wrap=True needs a source camera that covers a full turn (fx * 2 pi == width)")
-
+    wrap = _check_inputs(image, src_camera, dst_camera, wrap)
     if supersample is None:
         (sx, sy), (kx, ky) = plan_resampling(src_camera, dst_camera, max_supersample)
     else:
         sx, sy = (supersample, supersample) if isinstance(supersample, int) else supersample
         kx = ky = 1
         if sx < 1 or sy < 1:
-            raise ValueError(f"supersample must be >= 1, got {supersample}")
+            raise InputError(f"supersample must be >= 1, got {supersample}")
 
     out_dtype = image.dtype if image.is_floating_point() else torch.float32
     src = image.float() if out_dtype != torch.float64 else image
     cam = src_camera
     if kx > 1 or ky > 1:
         # area pre-average; the resized camera describes the averaged pixels (exact when k divides the size)
+        h, w = image.shape[-2:]
         size = (max(1, h // ky), max(1, w // kx))
         src = F.interpolate(src, size=size, mode="area")
         cam = src_camera.resized(size[1], size[0])
+    with torch.autocast(device_type=src.device.type, enabled=False):
+        out, mask = _sample_area(src, cam, dst_camera, (sx, sy), wrap)
+    out = out.to(out_dtype)
+    return (out, mask) if return_mask else out
 
+
+def _check_inputs(image: Tensor, src_camera: Camera, dst_camera: Camera, wrap: bool | None) -> bool:
+    """Check the arguments of :func:`to_cylinder`; returns ``wrap`` decided."""
+    if image.dim() != 4:
+        raise InputError(f"image must be [B,C,H,W], got {tuple(image.shape)}")
+    if not isinstance(dst_camera, CylindricalCamera):
+        raise TypeError(f"dst_camera must be a CylindricalCamera, got {type(dst_camera).__name__}")
+    h, w = image.shape[-2:]
+    if (w, h) != src_camera.size:
+        raise InputError(f"image is {w}x{h} but src_camera is {src_camera.width}x{src_camera.height}")
+    if wrap is None:
+        return src_camera.wraps
+    if wrap and not src_camera.wraps:
+        raise InputError("wrap=True needs a source camera that covers a full turn (fx * 2 pi == width)")
+    return wrap
+
+
+def _sample_area(
+    src: Tensor, cam: Camera, dst_camera: CylindricalCamera, factors: tuple[int, int], wrap: bool
+) -> tuple[Tensor, Tensor]:
+    """Sample ``src [B,C,h,w]`` (seen by ``cam``) at ``sx x sy`` points per pixel of ``dst_camera`` and
+    average each pixel's valid samples: ``(image [B,C,H',W'], valid [B,1,H',W'] bool)``."""
+    sx, sy = factors
+    b = src.shape[0]
     big = (
         dst_camera
         if (sx, sy) == (1, 1)
         else dst_camera.resized(dst_camera.width * sx, dst_camera.height * sy)
     )
-    with torch.autocast(device_type=src.device.type, enabled=False):
-        grid = big.pixel_grid(1, device=src.device, dtype=torch.float64)
-        rays = big.rays(grid)
-        uv = cam.project(rays)
-        ok = cam.projectable(rays)
-        if uv.shape[0] == 1 and b > 1:
-            uv, ok = uv.expand(b, -1, -1, -1), ok.expand(b, -1, -1, -1)
-        sampled, valid = sample_image(src, uv, wrap)
-        valid = valid & ok
-        weight = valid.to(sampled.dtype)
-        sampled = sampled * weight
-        if (sx, sy) != (1, 1):
-            frac = F.avg_pool2d(weight, (sy, sx))
-            out = F.avg_pool2d(sampled, (sy, sx)) / frac.clamp(min=1e-6)
-            mask = frac >= 0.5
-            out = out * mask.to(out.dtype)
-        else:
-            out, mask = sampled, valid
-    out = out.to(out_dtype)
-    return (out, mask) if return_mask else out
+    grid = big.pixel_grid(1, device=src.device, dtype=torch.float64)
+    rays = big.rays(grid)
+    uv = cam.project(rays)
+    ok = cam.projectable(rays)
+    if uv.shape[0] == 1 and b > 1:
+        uv, ok = uv.expand(b, -1, -1, -1), ok.expand(b, -1, -1, -1)
+    sampled, valid = sample_image(src, uv, wrap)
+    valid = valid & ok
+    weight = valid.to(sampled.dtype)
+    sampled = sampled * weight
+    if (sx, sy) == (1, 1):
+        return sampled, valid
+    frac = F.avg_pool2d(weight, (sy, sx))
+    out = F.avg_pool2d(sampled, (sy, sx)) / frac.clamp(min=1e-6)
+    mask = frac >= 0.5
+    return out * mask.to(out.dtype), mask

@@ -1,4 +1,4 @@
-"""The cylsfm dataset format (v1): reading, checking and writing sequences of panoramic video.
+"""The cylsfm dataset format (v1): the layout of a dataset, found and checked, and written sequence by sequence.
 
 A dataset root holds one directory per sequence (or is itself a single sequence)::
 
@@ -9,14 +9,14 @@ A dataset root holds one directory per sequence (or is itself a single sequence)
     ROOT/SEQ/mask.png            optional: white = pixels to use
     ROOT/splits/NAME/{train,val,test}.txt   optional split files (cylsfm.data.splits)
 
-``docs/data-format.md`` describes the format in full. Every problem with a file raises
+:func:`scan_dataset` finds and checks the sequences from file headers only (:class:`SequenceInfo`);
+:class:`SequenceWriter` writes one. The single files are read and written by :mod:`cylsfm.data.io`
+(re-exported here). ``docs/data-format.md`` describes the format in full. Every problem with a file raises
 :class:`DatasetError`, whose message names the file and the problem.
 """
 
 from __future__ import annotations
 
-import io
-import math
 import os
 import warnings
 from collections.abc import Sequence
@@ -24,12 +24,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
-from PIL import Image
 
-from ..atomic import atomic_write_bytes
-from ..errors import CylsfmError
-from ..geometry import Camera, CameraError, load_camera, mat_to_tum, tum_to_mat
+from ..errors import InputError
+from ..geometry import Camera, CameraError, load_camera
+from .io import (
+    DatasetError,
+    atomic_write_bytes,
+    depth_header,
+    image_size,
+    load_depth,
+    load_image,
+    load_mask,
+    read_tum,
+    resize_nearest,
+    save_depth,
+    save_png,
+    write_tum,
+)
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -59,239 +70,8 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 PathLike = str | os.PathLike[str]
 
 
-class DatasetError(CylsfmError, ValueError):
-    """A dataset file is missing or invalid; the message names the file and the problem."""
-
-
 class DatasetWarning(UserWarning):
     """A bad frame was skipped (``skip_bad=True``); the message names the file and the problem."""
-
-
-# --------------------------------------------------------------------------------------- writing
-# atomic_write_bytes (re-exported here for the data tools) lives in cylsfm.atomic
-def save_png(path: PathLike, image: np.ndarray, compress_level: int = 6) -> None:
-    """Write a ``uint8`` image ``[H,W,3]`` (RGB) or ``[H,W]`` (grey) as PNG, atomically."""
-    image = np.asarray(image)
-    if image.dtype != np.uint8:
-        raise ValueError(f"{path}: save_png needs a uint8 array, got {image.dtype}")
-    if not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)):
-        raise ValueError(f"{path}: save_png needs an [H,W,3] or [H,W] array, got shape {image.shape}")
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG", compress_level=compress_level)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def save_depth(path: PathLike, depth: np.ndarray) -> None:
-    """Write a depth map ``[H,W]`` (metres, >= 0, 0 = unknown) as a float32 ``.npy`` file, atomically."""
-    depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ValueError(f"{path}: depth must be [H,W], got shape {depth.shape}")
-    depth = depth.astype(np.float32, copy=False)
-    if not np.isfinite(depth).all():
-        raise ValueError(f"{path}: depth has non-finite values")
-    if (depth < 0).any():
-        raise ValueError(f"{path}: depth has negative values")
-    buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(depth), allow_pickle=False)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def write_tum(path: PathLike, timestamps: np.ndarray | Sequence[float], c2w: np.ndarray) -> None:
-    """Write camera-to-world poses ``c2w [N,4,4]`` with ``timestamps [N]`` as a TUM file, atomically.
-
-    One line per pose: ``t tx ty tz qx qy qz qw`` (translation in metres, unit quaternion, scalar last).
-    """
-    mats = np.asarray(c2w, dtype=np.float64)
-    times = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-    if mats.ndim != 3 or mats.shape[1:] != (4, 4):
-        raise ValueError(f"{path}: poses must be [N,4,4], got shape {mats.shape}")
-    if times.shape[0] != mats.shape[0]:
-        raise ValueError(f"{path}: {times.shape[0]} timestamps for {mats.shape[0]} poses")
-    if not (np.isfinite(mats).all() and np.isfinite(times).all()):
-        raise ValueError(f"{path}: poses and timestamps must be finite")
-    rot = mats[:, :3, :3]
-    err = np.abs(rot.transpose(0, 2, 1) @ rot - np.eye(3)).max(initial=0.0)
-    if err > 1e-5 or (mats.shape[0] and np.linalg.det(rot).min() <= 0):
-        raise ValueError(f"{path}: poses must be rigid transforms (orthonormal rotation, det +1)")
-    tum = mat_to_tum(torch.from_numpy(mats)).numpy() if mats.shape[0] else np.zeros((0, 7))
-    lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
-    for t, row in zip(times, tum, strict=True):
-        lines.append(" ".join(repr(float(v)) for v in (t, *row)))
-    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
-
-
-# --------------------------------------------------------------------------------------- reading
-def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory file.
-
-    Returns ``(timestamps float64 [N], c2w float64 [N,4,4])``: camera-to-world transforms (metres).
-    Blank lines and lines starting with ``#`` are skipped. A line that does not hold 8 finite numbers,
-    or whose quaternion is zero, raises :class:`DatasetError` naming the file and the line number.
-    """
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: pose file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read pose file ({exc})") from None
-    rows: list[list[float]] = []
-    for lineno, raw in enumerate(text.splitlines(), 1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        parts = line.split()
-        if len(parts) != 8:
-            raise DatasetError(
-                f"{path}:{lineno}: expected 8 values 't tx ty tz qx qy qz qw', got {len(parts)}"
-            )
-        try:
-            values = [float(p) for p in parts]
-        except ValueError:
-            raise DatasetError(f"{path}:{lineno}: not a number in {line!r}") from None
-        if not all(math.isfinite(v) for v in values):
-            raise DatasetError(f"{path}:{lineno}: non-finite value in {line!r}")
-        if math.hypot(*values[4:]) < 1e-12:
-            raise DatasetError(f"{path}:{lineno}: zero quaternion")
-        rows.append(values)
-    if not rows:
-        return np.zeros(0, dtype=np.float64), np.zeros((0, 4, 4), dtype=np.float64)
-    arr = np.asarray(rows, dtype=np.float64)
-    c2w = tum_to_mat(torch.from_numpy(arr[:, 1:])).numpy()
-    return arr[:, 0].copy(), c2w
-
-
-def _open_error(path: Path, what: str, exc: BaseException) -> DatasetError:
-    if isinstance(exc, FileNotFoundError):
-        return DatasetError(f"{path}: {what} not found")
-    detail = str(exc) or type(exc).__name__
-    return DatasetError(f"{path}: cannot decode {what} ({detail})")
-
-
-def _to_rgb(im: Image.Image) -> Image.Image:
-    if im.mode == "RGB":
-        return im
-    if im.mode.startswith("I;16") or im.mode == "I":
-        # 16-bit grey: scale to 8 bits (PIL's own conversion would clip at 255).
-        arr = np.asarray(im).astype(np.float32) / 257.0
-        grey = np.clip(np.rint(arr), 0, 255).astype(np.uint8)
-        return Image.fromarray(grey).convert("RGB")
-    return im.convert("RGB")
-
-
-def load_image(path: PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
-    """Decode an image file to ``uint8 [H,W,3]`` RGB (grey, palette and RGBA images are converted).
-
-    With ``size = (W, H)`` the image is resampled to that size with area interpolation (PIL's BOX filter).
-    A missing, unreadable or corrupt file raises :class:`DatasetError` naming it.
-    """
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            im.load()
-            rgb = _to_rgb(im)
-            if size is not None and rgb.size != tuple(size):
-                rgb = rgb.resize((int(size[0]), int(size[1])), Image.Resampling.BOX)
-            return np.asarray(rgb)
-    except Exception as exc:
-        raise _open_error(path, "image", exc) from None
-
-
-def image_size(path: PathLike) -> tuple[int, int]:
-    """``(W, H)`` of an image file from its header only (the pixels are not decoded)."""
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except Exception as exc:
-        raise _open_error(path, "image", exc) from None
-
-
-def _check_depth_array(path: Path, arr: object) -> np.ndarray:
-    if not isinstance(arr, np.ndarray):
-        raise DatasetError(f"{path}: depth file must hold one array, got {type(arr).__name__}")
-    if arr.dtype.kind not in "fiu":
-        raise DatasetError(f"{path}: depth must be numeric, got dtype {arr.dtype}")
-    if arr.ndim != 2:
-        raise DatasetError(f"{path}: depth must be a 2-D [H,W] array, got shape {arr.shape}")
-    depth = arr.astype(np.float32, copy=False)
-    if not np.isfinite(depth).all():
-        raise DatasetError(f"{path}: depth has non-finite values (NaN or inf)")
-    if (depth < 0).any():
-        raise DatasetError(f"{path}: depth has negative values (use 0 for unknown)")
-    return depth
-
-
-def load_depth(path: PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
-    """Load a ground-truth depth map: ``float32 [H,W]`` in metres, 0 = unknown.
-
-    Any integer or float dtype is converted to float32. With ``size = (W, H)`` the map is resampled by
-    nearest neighbour (pixel centres, so 0 = unknown stays exact). A missing or unreadable file, a pickled
-    object, a shape other than ``[H,W]``, non-finite or negative values raise :class:`DatasetError`.
-    """
-    path = Path(path)
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except Exception as exc:
-        raise _open_error(path, "depth file", exc) from None
-    if isinstance(arr, np.lib.npyio.NpzFile):
-        arr.close()
-        raise DatasetError(f"{path}: depth file must be a .npy array, got an .npz archive")
-    depth = _check_depth_array(path, arr)
-    if size is not None and (depth.shape[1], depth.shape[0]) != tuple(size):
-        depth = resize_nearest(depth, size)
-    return np.ascontiguousarray(depth)
-
-
-def resize_nearest(array: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Nearest-neighbour resampling of ``[H,W,...]`` to ``size = (W', H')`` with pixel-centre alignment.
-
-    Output pixel ``u'`` takes input column ``floor((u' + 0.5) W / W')``.
-    """
-    h, w = array.shape[:2]
-    w2, h2 = int(size[0]), int(size[1])
-    cols = np.minimum(((np.arange(w2) + 0.5) * (w / w2)).astype(np.int64), w - 1)
-    rows = np.minimum(((np.arange(h2) + 0.5) * (h / h2)).astype(np.int64), h - 1)
-    return array[rows[:, None], cols[None, :]]
-
-
-def depth_header(path: PathLike) -> tuple[tuple[int, ...], np.dtype]:
-    """``(shape, dtype)`` of a ``.npy`` file from its header only; :class:`DatasetError` if unreadable."""
-    path = Path(path)
-    fmt = np.lib.format
-    try:
-        with open(path, "rb") as fh:
-            version = fmt.read_magic(fh)
-            if version == (1, 0):
-                shape, _, dtype = fmt.read_array_header_1_0(fh)
-            elif version == (2, 0):
-                shape, _, dtype = fmt.read_array_header_2_0(fh)
-            else:
-                arr = np.load(path, mmap_mode="r", allow_pickle=False)
-                shape, dtype = arr.shape, arr.dtype
-                del arr
-    except Exception as exc:
-        raise _open_error(path, "depth file", exc) from None
-    return tuple(shape), np.dtype(dtype)
-
-
-def load_mask(path: PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
-    """Load a mask image as ``float32 [H,W]`` in ``{0, 1}``: 1 where the (grey) value is above one half.
-
-    With ``size = (W, H)`` the grey image is first resampled with area interpolation, so an output pixel
-    is used when most of its area was.
-    """
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            im.load()
-            grey = _to_rgb(im).convert("L") if im.mode.startswith("I") else im.convert("L")
-            if size is not None and grey.size != tuple(size):
-                grey = grey.resize((int(size[0]), int(size[1])), Image.Resampling.BOX)
-            arr = np.asarray(grey)
-    except Exception as exc:
-        raise _open_error(path, "mask", exc) from None
-    return (arr > 127).astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------- scanning
@@ -412,6 +192,94 @@ def list_images(seq_dir: PathLike, root: PathLike | None = None) -> list[Path]:
     return [img_dir / n for n in names]
 
 
+class _FrameProblems:
+    """Frame-level problems of one sequence: raised, or (``skip_bad``) warned about and recorded in ``bad``."""
+
+    def __init__(self, skip_bad: bool) -> None:
+        self.skip_bad = skip_bad
+        self.bad: dict[int, str] = {}
+
+    def report(self, index: int, message: str) -> None:
+        if not self.skip_bad:
+            raise DatasetError(message)
+        # the warning points at the caller of scan_dataset (report < check < _scan_sequence < scan_dataset)
+        warnings.warn(f"{message}; frame skipped", DatasetWarning, stacklevel=5)
+        self.bad.setdefault(index, message)
+
+
+def _check_image_sizes(images: list[Path], want: tuple[int, int], problems: _FrameProblems) -> None:
+    """Every frame's header must be readable and its size ``want = (W, H)``."""
+    for i, img in enumerate(images):
+        try:
+            got = image_size(img)
+        except DatasetError as exc:
+            problems.report(i, str(exc))
+            continue
+        if got != want:
+            problems.report(i, f"{img}: image is {got[0]}x{got[1]} but camera.json says {want[0]}x{want[1]}")
+
+
+def _find_depths(
+    seq_dir: Path, root: Path, images: list[Path], want: tuple[int, int], problems: _FrameProblems
+) -> list[Path | None] | None:
+    """The depth file of every frame (``None`` for a frame without), or ``None`` when there is none.
+
+    Every ``depth/*.npy`` must name a frame; its header must be numeric ``[H,W]`` of the camera's size.
+    """
+    depth_dir = seq_dir / "depth"
+    if not depth_dir.is_dir():
+        return None
+    _checked(depth_dir, root)
+    index_of = {p.stem: i for i, p in enumerate(images)}
+    found: list[Path | None] = [None] * len(images)
+    with os.scandir(depth_dir) as it:
+        entries = sorted(
+            (e for e in it if not e.name.startswith(".") and e.name.endswith(".npy")),
+            key=lambda e: e.name,
+        )
+    for entry in entries:
+        path = Path(entry.path)
+        if entry.is_symlink():
+            _checked(path, root)
+        stem = path.stem
+        if stem not in index_of:
+            raise DatasetError(f"{path}: depth file without a matching image in {seq_dir / 'images'}")
+        i = index_of[stem]
+        found[i] = path
+        if i in problems.bad:
+            continue
+        shape, dtype = depth_header(path)
+        if dtype.kind not in "fiu":
+            problems.report(i, f"{path}: depth must be numeric, got dtype {dtype}")
+        elif shape != (want[1], want[0]):
+            problems.report(i, f"{path}: depth is {shape} but the camera is [H,W] = ({want[1]}, {want[0]})")
+    return found if any(p is not None for p in found) else None
+
+
+def _read_poses(seq_dir: Path, root: Path, n: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(timestamps [N], c2w [N,4,4])`` from ``poses.txt`` (one pose per frame), or ``(None, None)``."""
+    pose_path = seq_dir / "poses.txt"
+    if not pose_path.exists():
+        return None, None
+    _checked(pose_path, root)
+    timestamps, poses = read_tum(pose_path)
+    if poses.shape[0] != n:
+        raise DatasetError(f"{pose_path}: {poses.shape[0]} poses but {n} frames in {seq_dir / 'images'}")
+    return timestamps, poses
+
+
+def _find_mask(seq_dir: Path, root: Path, want: tuple[int, int]) -> Path | None:
+    """``mask.png`` (of the camera's size ``want = (W, H)``), or ``None``."""
+    mask_path = seq_dir / "mask.png"
+    if not mask_path.exists():
+        return None
+    _checked(mask_path, root)
+    got = image_size(mask_path)
+    if got != want:
+        raise DatasetError(f"{mask_path}: mask is {got[0]}x{got[1]} but camera.json says {want[0]}x{want[1]}")
+    return mask_path
+
+
 def _scan_sequence(seq_dir: Path, root: Path, skip_bad: bool) -> SequenceInfo:
     _checked(seq_dir, root)
     cam_path = _checked(seq_dir / "camera.json", root)
@@ -420,77 +288,11 @@ def _scan_sequence(seq_dir: Path, root: Path, skip_bad: bool) -> SequenceInfo:
     except CameraError as exc:
         raise DatasetError(str(exc)) from None
     images = list_images(seq_dir, root)
-    n = len(images)
-    bad: dict[int, str] = {}
-
-    def problem(index: int, message: str) -> None:
-        if not skip_bad:
-            raise DatasetError(message)
-        warnings.warn(f"{message}; frame skipped", DatasetWarning, stacklevel=4)
-        bad.setdefault(index, message)
-
-    want = camera.size
-    for i, img in enumerate(images):
-        try:
-            got = image_size(img)
-        except DatasetError as exc:
-            problem(i, str(exc))
-            continue
-        if got != want:
-            problem(
-                i,
-                f"{img}: image is {got[0]}x{got[1]} but camera.json says {want[0]}x{want[1]}",
-            )
-
-    depths: list[Path | None] | None = None
-    depth_dir = seq_dir / "depth"
-    if depth_dir.is_dir():
-        _checked(depth_dir, root)
-        index_of = {p.stem: i for i, p in enumerate(images)}
-        found: list[Path | None] = [None] * n
-        with os.scandir(depth_dir) as it:
-            entries = sorted(
-                (e for e in it if not e.name.startswith(".") and e.name.endswith(".npy")),
-                key=lambda e: e.name,
-            )
-        for entry in entries:
-            path = Path(entry.path)
-            if entry.is_symlink():
-                _checked(path, root)
-            stem = path.stem
-            if stem not in index_of:
-                raise DatasetError(f"{path}: depth file without a matching image in {seq_dir / 'images'}")
-            i = index_of[stem]
-            found[i] = path
-            if i in bad:
-                continue
-            shape, dtype = depth_header(path)
-            if dtype.kind not in "fiu":
-                problem(i, f"{path}: depth must be numeric, got dtype {dtype}")
-            elif shape != (want[1], want[0]):
-                problem(i, f"{path}: depth is {shape} but the camera is [H,W] = ({want[1]}, {want[0]})")
-        if any(p is not None for p in found):
-            depths = found
-
-    poses = timestamps = None
-    pose_path = seq_dir / "poses.txt"
-    if pose_path.exists():
-        _checked(pose_path, root)
-        timestamps, poses = read_tum(pose_path)
-        if poses.shape[0] != n:
-            raise DatasetError(f"{pose_path}: {poses.shape[0]} poses but {n} frames in {seq_dir / 'images'}")
-
-    mask = None
-    mask_path = seq_dir / "mask.png"
-    if mask_path.exists():
-        _checked(mask_path, root)
-        got = image_size(mask_path)
-        if got != want:
-            raise DatasetError(
-                f"{mask_path}: mask is {got[0]}x{got[1]} but camera.json says {want[0]}x{want[1]}"
-            )
-        mask = mask_path
-
+    problems = _FrameProblems(skip_bad)
+    _check_image_sizes(images, camera.size, problems)
+    depths = _find_depths(seq_dir, root, images, camera.size, problems)
+    timestamps, poses = _read_poses(seq_dir, root, len(images))
+    mask = _find_mask(seq_dir, root, camera.size)
     return SequenceInfo(
         name=seq_dir.name,
         path=seq_dir,
@@ -500,7 +302,7 @@ def _scan_sequence(seq_dir: Path, root: Path, skip_bad: bool) -> SequenceInfo:
         poses=poses,
         timestamps=timestamps,
         mask=mask,
-        bad=bad,
+        bad=problems.bad,
     )
 
 
@@ -524,8 +326,10 @@ def scan_dataset(root: PathLike, skip_bad: bool = False) -> list[SequenceInfo]:
         DatasetError: naming the offending file and the problem.
     """
     root_r = Path(root).resolve()
-    dirs = find_sequence_dirs(root)
-    return [_scan_sequence(Path(d), root_r, skip_bad) for d in dirs]
+    sequences = []
+    for d in find_sequence_dirs(root):
+        sequences.append(_scan_sequence(Path(d), root_r, skip_bad))
+    return sequences
 
 
 # --------------------------------------------------------------------------------------- writer
@@ -542,6 +346,10 @@ class SequenceWriter:
         overwrite: allow writing into a directory that already holds a sequence; its ``camera.json``,
             frames, depth maps, ``poses.txt`` and ``mask.png`` are removed first.
         compress_level: PNG compression (0-9; lower is faster to write, larger files).
+
+    Raises:
+        DatasetError: the directory already holds a sequence and ``overwrite`` is off.
+        InputError: a frame, depth map, pose array or mask of the wrong shape or type.
     """
 
     def __init__(
@@ -579,14 +387,14 @@ class SequenceWriter:
         image = np.asarray(image)
         w, h = self.camera.size
         if image.dtype != np.uint8 or image.shape != (h, w, 3):
-            raise ValueError(
+            raise InputError(
                 f"{self.path}: frames must be uint8 [{h},{w},3], got {image.dtype} {tuple(image.shape)}"
             )
         stem = f"{self.count:06d}"
         if depth is not None:
             depth = np.asarray(depth)
             if depth.shape != (h, w):
-                raise ValueError(f"{self.path}: depth must be [{h},{w}], got {tuple(depth.shape)}")
+                raise InputError(f"{self.path}: depth must be [{h},{w}], got {tuple(depth.shape)}")
             save_depth(self.path / "depth" / f"{stem}.npy", depth)
         save_png(self.path / "images" / f"{stem}.png", image, self.compress_level)
         self.count += 1
@@ -609,25 +417,29 @@ class SequenceWriter:
         if self._finished:
             raise RuntimeError(f"{self.path}: sequence already finished")
         if self.count == 0:
-            raise ValueError(f"{self.path}: no frames were added")
+            raise InputError(f"{self.path}: no frames were added")
         if c2w is not None:
             mats = np.asarray(c2w, dtype=np.float64)
             if mats.shape != (self.count, 4, 4):
-                raise ValueError(f"{self.path}: poses must be [{self.count},4,4], got {tuple(mats.shape)}")
+                raise InputError(f"{self.path}: poses must be [{self.count},4,4], got {tuple(mats.shape)}")
             times = np.arange(self.count, dtype=np.float64) if timestamps is None else timestamps
             write_tum(self.path / "poses.txt", times, mats)
         elif timestamps is not None:
-            raise ValueError(f"{self.path}: timestamps without poses")
+            raise InputError(f"{self.path}: timestamps without poses")
         if mask is not None:
-            m = np.asarray(mask)
-            w, h = self.camera.size
-            if m.shape != (h, w):
-                raise ValueError(f"{self.path}: mask must be [{h},{w}], got {tuple(m.shape)}")
-            if m.dtype == np.bool_ or (m.dtype == np.uint8 and m.max(initial=0) <= 1):
-                m = m.astype(np.uint8) * 255
-            if m.dtype != np.uint8:
-                raise ValueError(f"{self.path}: mask must be bool or uint8, got {m.dtype}")
-            save_png(self.path / "mask.png", m)
+            save_png(self.path / "mask.png", self._mask_image(mask))
         self.camera.to_json(self.path / "camera.json")
         self._finished = True
         return self.path
+
+    def _mask_image(self, mask: np.ndarray) -> np.ndarray:
+        """``uint8 [H,W]`` 0/255 image of a bool or uint8 mask of the camera's size."""
+        m = np.asarray(mask)
+        w, h = self.camera.size
+        if m.shape != (h, w):
+            raise InputError(f"{self.path}: mask must be [{h},{w}], got {tuple(m.shape)}")
+        if m.dtype == np.bool_ or (m.dtype == np.uint8 and m.max(initial=0) <= 1):
+            m = m.astype(np.uint8) * 255
+        if m.dtype != np.uint8:
+            raise InputError(f"{self.path}: mask must be bool or uint8, got {m.dtype}")
+        return m

@@ -14,14 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .format import (
-    DatasetError,
-    SequenceInfo,
-    atomic_write_bytes,
-    find_sequence_dirs,
-    list_images,
-    scan_dataset,
-)
+from ..atomic import atomic_write_bytes
+from ..errors import InputError
+from .format import DatasetError, SequenceInfo, find_sequence_dirs, list_images, scan_dataset
+from .io import read_text
 
 __all__ = [
     "SPLIT_PARTS",
@@ -36,14 +32,15 @@ __all__ = [
 SPLIT_PARTS = ("train", "val", "test")
 
 PathLike = str | os.PathLike[str]
+Target = tuple[int, int]  # (sequence index, frame index) of a target
 
 
 def check_snippet_args(seq_length: int, stride: int) -> None:
-    """Raise ``ValueError`` unless ``seq_length`` is odd and >= 1 and ``stride`` >= 1."""
+    """Raise :class:`~cylsfm.errors.InputError` unless ``seq_length`` is odd and >= 1 and ``stride`` >= 1."""
     if int(seq_length) != seq_length or seq_length < 1 or seq_length % 2 == 0:
-        raise ValueError(f"seq_length must be an odd integer >= 1 (target in the middle), got {seq_length}")
+        raise InputError(f"seq_length must be an odd integer >= 1 (target in the middle), got {seq_length}")
     if int(stride) != stride or stride < 1:
-        raise ValueError(f"stride must be an integer >= 1, got {stride}")
+        raise InputError(f"stride must be an integer >= 1, got {stride}")
 
 
 def snippet_offsets(seq_length: int, stride: int) -> np.ndarray:
@@ -61,7 +58,7 @@ def split_path(root: PathLike, part: str, name: str = "default") -> Path:
 
 def _check_name(name: str, what: str) -> None:
     if not name or name in (".", "..") or "/" in name or "\\" in name or os.path.isabs(name):
-        raise ValueError(f"invalid {what} {name!r}: must be a plain directory or file name")
+        raise InputError(f"invalid {what} {name!r}: must be a plain directory or file name")
 
 
 def _unsafe(name: str) -> bool:
@@ -95,12 +92,7 @@ def read_split(
             dataset root (absolute paths, ``..``, separators), or an unknown sequence or frame.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: split file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read split file ({exc})") from None
+    text = read_text(path, "split file")
     frames: dict[str, set[str] | None]
     seq_dirs: dict[str, Path] = {}
     if sequences is not None:
@@ -181,60 +173,24 @@ def make_splits(
         fractions: ``(train, val, test)``, non-negative, summing to 1.
         seed: random seed.
         seq_length, stride: the snippet shape (see the module docstring).
+
+    Raises:
+        InputError: for an invalid name, mode, fractions or snippet shape.
+        DatasetError: for an invalid dataset (see :func:`~cylsfm.data.format.scan_dataset`).
     """
     _check_name(name, "split name")
     check_snippet_args(seq_length, stride)
     fr = [float(f) for f in fractions]
     if len(fr) != 3 or any(f < 0 or not math.isfinite(f) for f in fr) or abs(sum(fr) - 1) > 1e-6:
-        raise ValueError(f"fractions must be 3 non-negative numbers summing to 1, got {tuple(fractions)}")
+        raise InputError(f"fractions must be 3 non-negative numbers summing to 1, got {tuple(fractions)}")
     if mode not in ("sequence", "frame"):
-        raise ValueError(f"mode must be 'sequence' or 'frame', got {mode!r}")
+        raise InputError(f"mode must be 'sequence' or 'frame', got {mode!r}")
     seqs = scan_dataset(root)
-    k = (seq_length - 1) // 2
-    reach = k * stride
-    offsets = snippet_offsets(seq_length, stride)
     rng = np.random.default_rng(seed)
-    parts: list[list[tuple[int, int]]] = [[], [], []]
-
     if mode == "sequence":
-        counts = _allocate(len(seqs), fr)
-        perm = rng.permutation(len(seqs))
-        start = 0
-        for p, c in enumerate(counts):
-            for s in sorted(perm[start : start + c].tolist()):
-                parts[p].extend((s, t) for t in range(reach, len(seqs[s]) - reach))
-            start += c
+        parts = _split_by_sequence([len(seq) for seq in seqs], fr, rng, (seq_length - 1) // 2 * stride)
     else:
-        cands = [(s, t) for s, seq in enumerate(seqs) for t in range(reach, len(seq) - reach)]
-        m = len(cands)
-        want = [round(f * m) for f in fr]
-        for p in (1, 2):
-            if fr[p] > 0 and want[p] == 0 and m > 0:
-                want[p] = 1
-        held = [np.zeros(len(seq), dtype=bool) for seq in seqs]
-        taken = np.zeros(m, dtype=bool)
-        perm = rng.permutation(m)
-        # test first, then validation: each held-out snippet marks its frames; a validation snippet
-        # may not touch a test frame, a training snippet no held-out frame at all.
-        for p in (2, 1):
-            frozen = [h.copy() for h in held]
-            for idx in perm:
-                if len(parts[p]) >= want[p]:
-                    break
-                if taken[idx]:
-                    continue
-                s, t = cands[idx]
-                frames = t + offsets
-                if frozen[s][frames].any():
-                    continue
-                taken[idx] = True
-                held[s][frames] = True
-                parts[p].append((s, t))
-        train = [
-            idx for idx in perm if not taken[idx] and not held[cands[idx][0]][cands[idx][1] + offsets].any()
-        ]
-        parts[0] = [cands[i] for i in train[: want[0]]]
-
+        parts = _split_by_frame([len(seq) for seq in seqs], fr, rng, snippet_offsets(seq_length, stride))
     settings = (
         f"mode={mode} seed={seed} seq_length={seq_length} stride={stride} "
         f"fractions={','.join(f'{f:g}' for f in fr)}"
@@ -247,3 +203,55 @@ def make_splits(
         atomic_write_bytes(path, "".join(lines).encode())
         out[part] = path
     return out
+
+
+def _split_by_sequence(
+    lengths: list[int], fr: list[float], rng: np.random.Generator, reach: int
+) -> list[list[Target]]:
+    """Whole sequences (of ``lengths`` frames) to train / val / test; every target ``reach`` frames from
+    the sequence's ends is listed."""
+    parts: list[list[Target]] = [[], [], []]
+    counts = _allocate(len(lengths), fr)
+    perm = rng.permutation(len(lengths))
+    start = 0
+    for p, c in enumerate(counts):
+        for s in sorted(perm[start : start + c].tolist()):
+            parts[p].extend((s, t) for t in range(reach, lengths[s] - reach))
+        start += c
+    return parts
+
+
+def _split_by_frame(
+    lengths: list[int], fr: list[float], rng: np.random.Generator, offsets: np.ndarray
+) -> list[list[Target]]:
+    """Targets drawn at random; no frame of a held-out snippet (``t + offsets``) in a training snippet."""
+    reach = int(offsets[-1])
+    parts: list[list[Target]] = [[], [], []]
+    cands = [(s, t) for s, n in enumerate(lengths) for t in range(reach, n - reach)]
+    m = len(cands)
+    want = [round(f * m) for f in fr]
+    for p in (1, 2):
+        if fr[p] > 0 and want[p] == 0 and m > 0:
+            want[p] = 1
+    held = [np.zeros(n, dtype=bool) for n in lengths]
+    taken = np.zeros(m, dtype=bool)
+    perm = rng.permutation(m)
+    # test first, then validation: each held-out snippet marks its frames; a validation snippet
+    # may not touch a test frame, a training snippet no held-out frame at all.
+    for p in (2, 1):
+        frozen = [h.copy() for h in held]
+        for idx in perm:
+            if len(parts[p]) >= want[p]:
+                break
+            if taken[idx]:
+                continue
+            s, t = cands[idx]
+            frames = t + offsets
+            if frozen[s][frames].any():
+                continue
+            taken[idx] = True
+            held[s][frames] = True
+            parts[p].append((s, t))
+    train = [idx for idx in perm if not taken[idx] and not held[cands[idx][0]][cands[idx][1] + offsets].any()]
+    parts[0] = [cands[i] for i in train[: want[0]]]
+    return parts

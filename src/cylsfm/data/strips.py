@@ -23,9 +23,11 @@ import numpy as np
 from PIL import Image
 from torch.utils.data import Dataset
 
+from ..errors import InputError
 from ..geometry import Camera, CameraError
-from .dataset import AugmentConfig, build_sample, camera_class
-from .format import DatasetError, image_size, load_image
+from .augment import AugmentConfig, check_rollable
+from .io import DatasetError, image_size, load_image, read_text
+from .sample import build_sample, camera_class, check_size
 from .splits import check_snippet_args
 
 __all__ = ["StripDataset", "read_cam_txt"]
@@ -34,12 +36,7 @@ __all__ = ["StripDataset", "read_cam_txt"]
 def read_cam_txt(path: str | os.PathLike[str]) -> tuple[float, float, float, float]:
     """``(fx, cx, fy, cy)`` (pixels) from a ``*_cam.txt`` file: 9 numbers ``fx,0,cx,0,fy,cy,0,0,1``."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: intrinsics file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read intrinsics file ({exc})") from None
+    text = read_text(path, "intrinsics file")
     parts = text.replace(",", " ").split()
     if len(parts) != 9:
         raise DatasetError(
@@ -77,6 +74,8 @@ class StripDataset(Dataset):
         DatasetError: naming the file, for a missing list, image or ``cam.txt``, a listed path that
             leaves the root (absolute or ``..``), a strip whose width is not a multiple of
             ``seq_length``, or strips of different sizes without ``size``.
+        InputError: for invalid arguments (an even ``seq_length``, a split that is not a plain name, an
+            unknown camera model, ``roll`` on strips that do not wrap); a ``ValueError`` too.
     """
 
     def __init__(
@@ -91,23 +90,14 @@ class StripDataset(Dataset):
         check_snippet_args(seq_length, 1)
         cls = camera_class(camera_model)
         if not split or "/" in split or "\\" in split or split in (".", ".."):
-            raise ValueError(f"split must be a plain name such as 'train', got {split!r}")
-        if size is not None:
-            if len(size) != 2 or any(int(v) != v or v < 1 for v in size):
-                raise ValueError(f"size must be (W, H) with positive integers, got {size!r}")
-            size = (int(size[0]), int(size[1]))
+            raise InputError(f"split must be a plain name such as 'train', got {split!r}")
         self.root = Path(root)
         self.seq_length = seq_length
         self.camera_model = camera_model
-        self.size = size
+        self.size = check_size(size)
         self.augment = augment
         list_path = self.root / f"{split}.txt"
-        try:
-            text = list_path.read_text()
-        except FileNotFoundError:
-            raise DatasetError(f"{list_path}: list file not found") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise DatasetError(f"{list_path}: cannot read list file ({exc})") from None
+        text = read_text(list_path, "list file")
         root_r = self.root.resolve()
         self._items: list[tuple[str, str, Path]] = []
         cams: list[Camera] = []
@@ -116,51 +106,53 @@ class StripDataset(Dataset):
             line = raw.strip()
             if not line or line.startswith("#"):
                 continue
-            parts = line.split()
-            if len(parts) != 2:
-                raise DatasetError(f"{list_path}:{lineno}: expected 'SUBFOLDER FRAME_ID', got {line!r}")
-            sub, fid = parts
-            if not _safe_relative(sub) or not _safe_relative(fid) or "/" in fid:
-                raise DatasetError(f"{list_path}:{lineno}: entry {line!r} would leave the dataset root")
-            folder = self.root / sub
-            image = next((p for p in (folder / f"{fid}.jpg", folder / f"{fid}.png") if p.exists()), None)
-            if image is None:
-                raise DatasetError(
-                    f"{folder / fid}.jpg: strip image not found (nor .png), listed in {list_path}:{lineno}"
-                )
-            cam_path = folder / f"{fid}_cam.txt"
-            for p in (image, cam_path):
-                if p.exists() and not p.resolve().is_relative_to(root_r):
-                    raise DatasetError(f"{p}: resolves outside the dataset root {root_r}")
-            width, height = image_size(image)
-            if width % seq_length:
-                raise DatasetError(
-                    f"{image}: strip width {width} is not a multiple of seq_length={seq_length}"
-                )
-            fx, cx, fy, cy = read_cam_txt(cam_path)
-            fw = width // seq_length
-            try:
-                cam = cls(width=fw, height=height, fx=fx, cx=cx, fy=fy, cy=cy)
-            except CameraError as exc:
-                raise DatasetError(f"{cam_path}: {exc}") from None
-            if size is not None and cam.size != size:
-                cam = cam.resized(*size)
+            sub, fid, image, cam_path = self._entry(line, f"{list_path}:{lineno}", root_r)
+            cam = self._strip_camera(cls, image, cam_path)
+            frame_sizes.add(cam.size)
+            if self.size is not None and cam.size != self.size:
+                cam = cam.resized(*self.size)
             cams.append(cam)
-            frame_sizes.add((fw, height))
             self._items.append((sub, fid, image))
-        if size is None and len(frame_sizes) > 1:
+        if self.size is None and len(frame_sizes) > 1:
             raise DatasetError(
                 f"{list_path}: strips have different frame sizes {sorted(frame_sizes)}; pass size=(W, H)"
             )
-        if augment is not None and augment.roll:
-            for (sub, fid, _), cam in zip(self._items, cams, strict=True):
-                if not cam.wraps:
-                    raise ValueError(
-                        f"roll augmentation needs full 360-degree panoramas (fx * 2 pi == width); "
-                        f"{sub}/{fid} does not wrap"
-                    )
+        check_rollable(
+            augment, ((f"{sub}/{fid}", cam) for (sub, fid, _), cam in zip(self._items, cams, strict=True))
+        )
         self._intr = np.asarray([[float(c.fx), float(c.cx), float(c.fy), float(c.cy)] for c in cams])
         self._sizes = [c.size for c in cams]
+
+    def _entry(self, line: str, where: str, root_r: Path) -> tuple[str, str, Path, Path]:
+        """``(subfolder, frame id, strip image, cam.txt)`` of a list line (``where``: its file and line)."""
+        parts = line.split()
+        if len(parts) != 2:
+            raise DatasetError(f"{where}: expected 'SUBFOLDER FRAME_ID', got {line!r}")
+        sub, fid = parts
+        if not _safe_relative(sub) or not _safe_relative(fid) or "/" in fid:
+            raise DatasetError(f"{where}: entry {line!r} would leave the dataset root")
+        folder = self.root / sub
+        image = next((p for p in (folder / f"{fid}.jpg", folder / f"{fid}.png") if p.exists()), None)
+        if image is None:
+            raise DatasetError(f"{folder / fid}.jpg: strip image not found (nor .png), listed in {where}")
+        cam_path = folder / f"{fid}_cam.txt"
+        for p in (image, cam_path):
+            if p.exists() and not p.resolve().is_relative_to(root_r):
+                raise DatasetError(f"{p}: resolves outside the dataset root {root_r}")
+        return sub, fid, image, cam_path
+
+    def _strip_camera(self, cls: type[Camera], image: Path, cam_path: Path) -> Camera:
+        """The camera of one frame of a strip (its stored size), from the image header and ``cam.txt``."""
+        width, height = image_size(image)
+        if width % self.seq_length:
+            raise DatasetError(
+                f"{image}: strip width {width} is not a multiple of seq_length={self.seq_length}"
+            )
+        fx, cx, fy, cy = read_cam_txt(cam_path)
+        try:
+            return cls(width=width // self.seq_length, height=height, fx=fx, cx=cx, fy=fy, cy=cy)
+        except CameraError as exc:
+            raise DatasetError(f"{cam_path}: {exc}") from None
 
     def __len__(self) -> int:
         return len(self._items)

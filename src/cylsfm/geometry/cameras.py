@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from ..atomic import atomic_write_bytes
-from ..errors import CylsfmError
+from ..errors import CylsfmError, ShapeError, check_shape, reading
 
 Param = float | Tensor
 
@@ -57,11 +57,6 @@ def _bcast(p: Param, ref: Tensor) -> Param:
     if isinstance(p, Tensor):
         return p.to(device=ref.device, dtype=ref.dtype).reshape(-1, 1, 1)
     return p
-
-
-def _check_image_tensor(t: Tensor, channels: int, name: str) -> None:
-    if t.dim() != 4 or t.shape[1] != channels:
-        raise ValueError(f"{name} must have shape [B,{channels},H,W], got {tuple(t.shape)}")
 
 
 @dataclass(frozen=True)
@@ -227,12 +222,10 @@ class Camera:
     def from_json(cls, path: str | os.PathLike[str]) -> Camera:
         """Read ``camera.json``; errors name the file and the problem."""
         path = Path(path)
-        try:
+        with reading(path, CameraError):
+            if not path.exists():
+                raise CameraError(f"{path}: camera file not found")
             text = path.read_text()
-        except FileNotFoundError:
-            raise CameraError(f"{path}: camera file not found") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise CameraError(f"{path}: cannot read camera file ({exc})") from None
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
@@ -284,6 +277,15 @@ class CylindricalCamera(Camera):
 
         ``fx = width / (2 pi)``, ``cx = width / 2``, ``fy = height / (2 vfov_h)``, ``cy = (height - 1) / 2``.
         The default ``vfov_h = 1`` is +-45 degrees of elevation, as in the paper's Headcam preparation.
+
+        >>> cam = CylindricalCamera.full(512, 128)
+        >>> cam.wraps, cam.hfov_deg
+        (True, 360.0)
+        >>> point = torch.tensor([1.0, 0.0, 1.0]).reshape(1, 3, 1, 1)  # 45 degrees to the right, at eye level
+        >>> cam.project(point).flatten()  # u = fx * pi/4 + cx = 320, v = cy
+        tensor([320.0000,  63.5000])
+        >>> cam.depth_of(point).item() == 2**0.5  # cylindrical depth: the horizontal distance
+        True
         """
         return cls(
             width=width,
@@ -300,7 +302,7 @@ class CylindricalCamera(Camera):
         return math.degrees(self.width / float(self.fx if not isinstance(self.fx, Tensor) else self.fx[0]))
 
     def project(self, points: Tensor) -> Tensor:
-        _check_image_tensor(points, 3, "points")
+        check_shape(points, "B,3,H,W", "points")
         x, y, z = points[:, 0], points[:, 1], points[:, 2]
         r2 = x * x + z * z
         # Points on the vertical axis have no azimuth: nudge them to (0, eps) so that the value and the
@@ -322,10 +324,17 @@ class CylindricalCamera(Camera):
         return torch.stack((torch.sin(theta), h, torch.cos(theta)), 1)
 
     def unproject(self, depth: Tensor) -> Tensor:
-        _check_image_tensor(depth, 1, "depth")
+        """Cylindrical depth ``[B,1,H,W]`` -> camera points ``[B,3,H,W]`` = ``d (sin theta, h, cos theta)``.
+
+        >>> cam = CylindricalCamera.full(4, 2)
+        >>> points = cam.unproject(torch.full((1, 1, 2, 4), 2.0))
+        >>> torch.allclose(cam.project(points), cam.pixel_grid(1, points.device, points.dtype), atol=1e-5)
+        True
+        """
+        check_shape(depth, "B,1,H,W", "depth")
         b, _, hgt, wid = depth.shape
         if (wid, hgt) != self.size:
-            raise ValueError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
+            raise ShapeError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
         grid = self.pixel_grid(b, depth.device, depth.dtype)
         return self.rays(grid) * depth
 
@@ -373,7 +382,7 @@ class PinholeCamera(Camera):
         return cls(width=width, height=height, fx=f, cx=(width - 1) / 2, fy=f, cy=(height - 1) / 2)
 
     def project(self, points: Tensor) -> Tensor:
-        _check_image_tensor(points, 3, "points")
+        check_shape(points, "B,3,H,W", "points")
         x, y, z = points[:, 0], points[:, 1], points[:, 2]
         z = torch.where(z.abs() < _EPS, torch.full_like(z, _EPS), z)
         u = _bcast(self.fx, x) * (x / z) + _bcast(self.cx, x)
@@ -387,10 +396,10 @@ class PinholeCamera(Camera):
         return torch.stack((x, y, torch.ones_like(x)), 1)
 
     def unproject(self, depth: Tensor) -> Tensor:
-        _check_image_tensor(depth, 1, "depth")
+        check_shape(depth, "B,1,H,W", "depth")
         b, _, hgt, wid = depth.shape
         if (wid, hgt) != self.size:
-            raise ValueError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
+            raise ShapeError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
         grid = self.pixel_grid(b, depth.device, depth.dtype)
         return self.rays(grid) * depth
 
@@ -430,7 +439,7 @@ class EquirectangularCamera(Camera):
         )
 
     def project(self, points: Tensor) -> Tensor:
-        _check_image_tensor(points, 3, "points")
+        check_shape(points, "B,3,H,W", "points")
         x, y, z = points[:, 0], points[:, 1], points[:, 2]
         r2 = x * x + z * z
         small = r2 < _EPS * _EPS
@@ -451,10 +460,10 @@ class EquirectangularCamera(Camera):
         return torch.stack((c * torch.sin(theta), torch.sin(phi), c * torch.cos(theta)), 1)
 
     def unproject(self, depth: Tensor) -> Tensor:
-        _check_image_tensor(depth, 1, "depth")
+        check_shape(depth, "B,1,H,W", "depth")
         b, _, hgt, wid = depth.shape
         if (wid, hgt) != self.size:
-            raise ValueError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
+            raise ShapeError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
         return self.rays(self.pixel_grid(b, depth.device, depth.dtype)) * depth
 
     def depth_of(self, points: Tensor) -> Tensor:

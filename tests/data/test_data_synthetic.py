@@ -1,5 +1,6 @@
 """The street generator: ground truth that explains the images, determinism, projections, dataset output."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -7,8 +8,15 @@ import pytest
 import torch
 
 from cylsfm import inverse_warp
-from cylsfm.data.synthetic import StreetScene, SynthConfig, generate_dataset, make_camera, render_frame
+from cylsfm.data.synth import StreetScene, SynthConfig, generate_dataset, make_camera, render_frame
+from cylsfm.data.synth import cars as cars_module
+from cylsfm.data.synth.prisms import BOX
+from cylsfm.errors import InputError
 from cylsfm.geometry import relative_pose, transform_points
+
+#: The promise of the generator (cylsfm.data.synth.cars): a moving car's centre stays more than this far
+#: (metres, horizontally) from the camera in every frame.
+CLEARANCE = 3.5
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +94,32 @@ def test_images_have_detail_everywhere(scene):
     assert (depth == 0).mean() > 0.03 and (depth == 0)[-1].sum() == 0  # sky on top, none at the bottom
 
 
+def _moving_car_distances(scene) -> np.ndarray:
+    """Horizontal distance [F, cars] from the camera to the centre of each moving car as rendered (the last
+    3 prisms a car: underbody, body and cabin, all centred on the car)."""
+    n = len(scene.static)
+    out = []
+    for f in range(len(scene.c2w)):
+        boxes = scene.prisms_at(f).a[n:].reshape(-1, 3, 4)  # [cars, 3, (x0, x1, z0, z1)]
+        centres = 0.5 * (boxes[..., [0, 2]] + boxes[..., [1, 3]])  # [cars, 3, (x, z)]
+        assert np.allclose(centres, centres[:, :1])
+        out.append(np.linalg.norm(centres[:, 0] - scene.c2w[f, [0, 2], 3], axis=1))
+    return np.array(out)
+
+
+def _static_distances(scene) -> np.ndarray:
+    """Horizontal distance [F, N] from the camera to the footprint of every static object."""
+    p = scene.static
+    box = p.kind == BOX
+    out = []
+    for x, z in scene.c2w[:, [0, 2], 3]:
+        dx = np.maximum(np.maximum(p.a[:, 0] - x, x - p.a[:, 1]), 0)
+        dz = np.maximum(np.maximum(p.a[:, 2] - z, z - p.a[:, 3]), 0)
+        cyl = np.hypot(p.a[:, 0] - x, p.a[:, 1] - z) - p.a[:, 2]
+        out.append(np.where(box, np.hypot(dx, dz), cyl))
+    return np.array(out)
+
+
 def test_moving_cars_move_and_keep_clear_of_the_camera():
     sc = StreetScene.generate(5, SynthConfig(frames=30, moving_cars=8))
     assert len(sc.movers) == 8
@@ -93,6 +127,26 @@ def test_moving_cars_move_and_keep_clear_of_the_camera():
     n = len(sc.static)
     assert len(p0) == n + 3 * 8
     assert not np.allclose(p0.a[n:], p1.a[n:])
+    assert _moving_car_distances(sc).min() > CLEARANCE
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        sc.movers[0].speed = 0.0  # cars are values
+
+
+@pytest.mark.parametrize(("seed", "frames", "n_cars"), [(18, 40, 30), (24, 40, 30), (5, 60, 40)])
+def test_moving_cars_keep_the_promised_clearance(seed, frames, n_cars, monkeypatch):
+    """In every frame, every moving car's centre stays more than 3.5 m (horizontally) from the camera, and
+    the ride keeps to its lane 1 m clear of the parked cars, lamps, trees and buildings.
+
+    The seeds are ones whose unchecked draws do bring a car closer (the negative control below), so the
+    clearance check is exercised, not just never needed.
+    """
+    cfg = SynthConfig(frames=frames, moving_cars=n_cars)
+    scene = StreetScene.generate(seed, cfg)
+    assert len(scene.movers) == n_cars  # every car found a clear lane
+    assert _moving_car_distances(scene).min() > CLEARANCE
+    assert _static_distances(scene).min() > 0.9
+    monkeypatch.setattr(cars_module, "CLEARANCE", -np.inf)
+    assert _moving_car_distances(StreetScene.generate(seed, cfg)).min() <= CLEARANCE
 
 
 def test_generate_dataset_writes_format_v1(tmp_path):
@@ -114,3 +168,56 @@ def test_generate_dataset_writes_format_v1(tmp_path):
         tmp_path / "again", sequences=1, frames=4, width=128, height=32, seed=3, workers=2, progress=False
     )
     assert (again[0] / "images" / "000002.png").read_bytes() == a  # the same with parallel workers
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "word"),
+    [
+        ({"sequences": 0}, "sequences"),
+        ({"frames": 2}, "frames"),
+        ({"width": 0}, "width"),
+        ({"height": 0}, "height"),
+        ({"first_index": -1}, "first_index"),
+        ({"projection": "fisheye"}, "projection"),
+        ({"config": SynthConfig(supersample=0)}, "supersample"),
+        ({"splits": True, "split_fractions": (0.5, 0.5, 0.5)}, "fractions"),
+    ],
+)
+def test_generate_dataset_rejects_invalid_arguments(tmp_path, kwargs, word):
+    args = {"sequences": 1, "frames": 3, "width": 16, "height": 8, "workers": 1, "progress": False, **kwargs}
+    with pytest.raises(InputError, match=word):
+        generate_dataset(tmp_path / "out", **args)
+    assert not (tmp_path / "out").exists()  # nothing written
+
+
+def test_generate_dataset_writes_splits_by_sequence_and_refuses_to_replace(tmp_path):
+    from cylsfm.data import make_splits, read_split
+
+    args = {"frames": 4, "width": 32, "height": 8, "seed": 2, "workers": 1, "progress": False}
+    generate_dataset(tmp_path, sequences=4, splits=True, **args)
+    parts = {
+        p: read_split(tmp_path / "splits" / "default" / f"{p}.txt", tmp_path)
+        for p in ("train", "val", "test")
+    }
+    seqs = {p: {s for s, _ in v} for p, v in parts.items()}
+    assert [len(seqs[p]) for p in ("train", "val", "test")] == [2, 1, 1]  # whole rides, 0.8 / 0.1 / 0.1
+    assert set.union(*seqs.values()) == {f"seq_{n:03d}" for n in range(4)}
+    for p, entries in parts.items():  # every target with a full 3-frame snippet of its rides
+        assert sorted(entries) == sorted((q, f"{t:06d}") for q in seqs[p] for t in (1, 2))
+    first = {p: (tmp_path / "splits" / "default" / f"{p}.txt").read_bytes() for p in parts}
+    make_splits(tmp_path, mode="sequence", seed=2)  # what the generator promises to have called
+    assert first == {p: (tmp_path / "splits" / "default" / f"{p}.txt").read_bytes() for p in parts}
+    # a sequence or a split that exists stops the run before anything is rendered
+    with pytest.raises(InputError, match="seq_003"):
+        generate_dataset(tmp_path, sequences=2, first_index=3, **args)
+    with pytest.raises(InputError, match="split"):
+        generate_dataset(tmp_path, sequences=1, first_index=4, splits=True, **args)
+    assert not (tmp_path / "seq_004").exists()
+    # with overwrite the split is written again over every sequence in the root
+    generate_dataset(tmp_path, sequences=1, first_index=4, splits=True, overwrite=True, **args)
+    seqs = {
+        s
+        for p in ("train", "val", "test")
+        for s, _ in read_split(tmp_path / "splits" / "default" / f"{p}.txt", tmp_path)
+    }
+    assert seqs == {f"seq_{n:03d}" for n in range(5)}

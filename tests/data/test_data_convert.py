@@ -9,6 +9,7 @@ import torch
 
 from cylsfm.data.convert import plan_resampling, to_cylinder
 from cylsfm.data.synthetic import StreetScene, SynthConfig, make_camera, render_frame
+from cylsfm.errors import InputError
 from cylsfm.geometry import CylindricalCamera, EquirectangularCamera, PinholeCamera
 
 
@@ -78,7 +79,7 @@ def test_wraps_across_the_seam():
     # without wrapping the seam column has no left neighbour and becomes invalid
     _, mask = to_cylinder(img, src, dst, wrap=False, supersample=1, return_mask=True)
     assert not bool(mask[..., 0].any()) and bool(mask[..., 1:].all())
-    with pytest.raises(ValueError, match="full turn"):
+    with pytest.raises(InputError, match="full turn"):
         to_cylinder(img, replace(src, fx=20.0), dst, wrap=True)
 
 

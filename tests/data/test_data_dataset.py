@@ -19,7 +19,9 @@ from cylsfm.data import (
     camera_of,
 )
 from cylsfm.data.room import make_pose, render_room
+from cylsfm.errors import InputError
 from cylsfm.geometry import relative_pose, yaw_matrix
+from cylsfm.geometry.seam import roll_pose
 
 W, H = 64, 16
 KEYS = {"target", "sources", "intrinsics", "camera_model", "size", "sequence", "frame", "index"}
@@ -128,14 +130,21 @@ def test_sizes_must_agree_without_resize(tmp_path):
 
 def test_bad_arguments(tmp_path):
     write_seq(tmp_path / "s", n=3, camera=PinholeCamera.from_fov(W, H, 90))
-    with pytest.raises(ValueError, match="seq_length"):
+    # invalid argument values are the project's own error (the CLI reports them), and still ValueErrors
+    with pytest.raises(InputError, match="seq_length"):
         SequenceDataset(tmp_path, seq_length=2)
-    with pytest.raises(ValueError, match="roll"):
+    with pytest.raises(InputError, match="roll"):
         SequenceDataset(tmp_path, augment=AugmentConfig(roll=True))
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="mirror_prob"):
         AugmentConfig(mirror_prob=2.0)
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="static filter"):
         StaticFilter(method="magic")
+    for size in ((0, H), (W, 2.5), (W,)):
+        with pytest.raises(InputError, match="size"):
+            SequenceDataset(tmp_path, size=size)
+    with pytest.raises(InputError, match="camera model"):
+        camera_of({**SequenceDataset(tmp_path)[0], "camera_model": "fisheye"})
+    assert issubclass(InputError, ValueError)
     with pytest.raises(DatasetError, match=r"poses\.txt"):
         SequenceDataset(tmp_path, static=StaticFilter(method="poses"))
 
@@ -292,6 +301,8 @@ def test_roll_keeps_geometry_consistent(room_root):
         s = ds[0]
         k = _roll_of(s["target"], plain["target"])
         assert torch.equal(s["depth"], torch.roll(plain["depth"], k, dims=-1))
+        # the poses turn with the panorama: T' = Y T Y^-1 with Y the yaw by 2 pi k / W
+        assert torch.allclose(s["pose_gt"], roll_pose(plain["pose_gt"].double(), k, 128).float(), atol=1e-6)
         assert warp_ratio(s) > 3
         if 16 <= k % 64 <= 48:
             # the opposite yaw (off by 2a, here 90 to 270 degrees) does not explain the rolled images
@@ -318,7 +329,7 @@ def test_reverse_swaps_the_sources_with_their_poses(room_root):
     torch.manual_seed(0)
     flips = [torch.equal(ds[0]["sources"], plain["sources"].flip(0)) for _ in range(16)]
     assert 0 < sum(flips) < 16
-    with pytest.raises(ValueError, match="reverse_prob"):
+    with pytest.raises(InputError, match="reverse_prob"):
         AugmentConfig(reverse_prob=-0.1)
 
 

@@ -21,6 +21,7 @@ from cylsfm.data import (
     write_tum,
 )
 from cylsfm.data.room import make_pose
+from cylsfm.errors import InputError
 
 W, H = 64, 16
 
@@ -86,9 +87,9 @@ def test_writer_writes_camera_last_and_refuses_to_overwrite(tmp_path):
     w = SequenceWriter(tmp_path / "s", CylindricalCamera.full(W, H))
     w.add_frame(frames(1)[0])
     assert not (tmp_path / "s" / "camera.json").exists()
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match=r"uint8 \[16,64,3\]"):
         w.add_frame(np.zeros((H, W + 1, 3), np.uint8))
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="uint8"):
         w.add_frame(np.zeros((H, W, 3), np.float32))
     w.finish()
     assert (tmp_path / "s" / "camera.json").exists()
@@ -155,12 +156,23 @@ def test_bad_tum_lines_name_file_and_line(tmp_path, line, problem):
 def test_write_tum_rejects_non_rigid(tmp_path):
     bad = np.eye(4)[None].repeat(2, 0)
     bad[1, 0, 0] = 2
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="rigid"):
         write_tum(tmp_path / "p.txt", [0, 1], bad)
     assert not (tmp_path / "p.txt").exists()
 
 
 # ----------------------------------------------------------------------------------------- files
+def test_unreadable_pose_file_names_the_file(tmp_path):
+    with pytest.raises(DatasetError, match=r"nope\.txt: pose file not found"):
+        read_tum(tmp_path / "nope.txt")
+    (tmp_path / "dir.txt").mkdir()
+    with pytest.raises(DatasetError, match=r"dir\.txt: cannot read"):
+        read_tum(tmp_path / "dir.txt")
+    (tmp_path / "latin.txt").write_bytes(b"0 0 0 0 0 0 0 1 # caf\xe9\n")
+    with pytest.raises(DatasetError, match=r"latin\.txt: cannot read"):
+        read_tum(tmp_path / "latin.txt")
+
+
 def test_atomic_write_keeps_old_file_on_failure(tmp_path):
     path = tmp_path / "f.bin"
     atomic_write_bytes(path, b"old")
@@ -222,7 +234,7 @@ def test_load_depth_checks(tmp_path):
         load_depth(tmp_path / "obj.npy")
     with pytest.raises(DatasetError, match=r"nothere\.npy"):
         load_depth(tmp_path / "nothere.npy")
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="negative"):
         save_depth(tmp_path / "x.npy", -np.ones((H, W)))
     # nearest-neighbour resize keeps unknown (0) pixels exact
     arr = np.zeros((H, W), np.float32)

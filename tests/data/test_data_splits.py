@@ -3,6 +3,7 @@ import pytest
 
 from cylsfm import CylindricalCamera
 from cylsfm.data import DatasetError, SequenceDataset, SequenceWriter, make_splits, read_split
+from cylsfm.errors import InputError
 
 W, H = 32, 8
 
@@ -102,6 +103,8 @@ def test_read_split_validation(tmp_path):
         assert f"{path}:2:" in str(info.value)
     with pytest.raises(DatasetError, match="not found"):
         read_split(tmp_path / "nope.txt", tmp_path)
+    with pytest.raises(DatasetError, match="cannot read"):
+        read_split(tmp_path, tmp_path)  # a directory
 
 
 def test_dataset_with_split_files(tmp_path):
@@ -124,11 +127,13 @@ def test_dataset_with_split_files(tmp_path):
 
 def test_bad_arguments(tmp_path):
     write_seq(tmp_path / "a", 4)
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="fractions"):
         make_splits(tmp_path, fractions=(0.5, 0.2, 0.2))
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="mode"):
         make_splits(tmp_path, mode="random")
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="split name"):
         make_splits(tmp_path, name="../x")
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="seq_length"):
         make_splits(tmp_path, seq_length=4)
+    with pytest.raises(InputError, match="stride"):
+        make_splits(tmp_path, stride=0)

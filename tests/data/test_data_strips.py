@@ -7,6 +7,7 @@ from PIL import Image
 
 from cylsfm import CylindricalCamera
 from cylsfm.data import AugmentConfig, DatasetError, StripDataset, camera_of
+from cylsfm.errors import InputError
 
 FW, FH = 32, 8
 
@@ -78,8 +79,14 @@ def test_jpg_strips_and_pinhole(tmp_path):
     ds = StripDataset(tmp_path, camera_model="pinhole")
     cam = camera_of(ds[0])
     assert cam.model == "pinhole" and cam.fx == pytest.approx(20.0) and not cam.wraps
-    with pytest.raises(ValueError, match="roll"):
+    with pytest.raises(InputError, match=r"roll.*s/f1 does not wrap"):
         StripDataset(tmp_path, augment=AugmentConfig(roll=True))
+    with pytest.raises(InputError, match="size"):
+        StripDataset(tmp_path, camera_model="pinhole", size=(0, 4))
+    with pytest.raises(InputError, match="camera model"):
+        StripDataset(tmp_path, camera_model="fisheye")
+    with pytest.raises(InputError, match="plain name"):
+        StripDataset(tmp_path, split="../train")
 
 
 def test_bad_strips(tmp_path):
@@ -100,7 +107,10 @@ def test_bad_strips(tmp_path):
     assert "missing" in str(info.value) and "train.txt:2" in str(info.value)
     (tmp_path / "s" / "ok_cam.txt").unlink()
     (tmp_path / "train.txt").write_text("s ok\n")
-    with pytest.raises(DatasetError, match=r"ok_cam\.txt"):
+    with pytest.raises(DatasetError, match=r"ok_cam\.txt: intrinsics file not found"):
+        StripDataset(tmp_path)
+    (tmp_path / "s" / "ok_cam.txt").write_bytes(b"\xff\xfe1,0,2\n")
+    with pytest.raises(DatasetError, match=r"ok_cam\.txt: cannot read"):
         StripDataset(tmp_path)
     (tmp_path / "s" / "ok_cam.txt").write_text("1,2,3\n")
     with pytest.raises(DatasetError, match=r"ok_cam\.txt.*9"):

@@ -6,25 +6,55 @@ from pathlib import Path
 import av
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from cylsfm.cli import main
-from cylsfm.geometry import CylindricalCamera, EquirectangularCamera, PinholeCamera
+from cylsfm.data.convert import to_cylinder
+from cylsfm.export.colorize import colorize_depth
+from cylsfm.geometry import Camera, CylindricalCamera, EquirectangularCamera, PinholeCamera
 from cylsfm.model import Predictor, build_models, save_checkpoint
 from cylsfm.model.config import config_to_dict, preset
-from cylsfm.predict import model_camera, predict
+from cylsfm.predict import MIN_COVERAGE, coverage, model_camera, predict
+
+
+def _checkpoint(directory: Path, width: int = 128, height: int = 32, fov: float = 360.0) -> Path:
+    """An untrained checkpoint trained (notionally) at ``width x height``, on ``fov``-degree crops."""
+    cfg = preset("default")
+    cfg.data.width, cfg.data.height, cfg.data.fov = width, height, fov
+    torch.manual_seed(0)
+    disp, pose = build_models(cfg)
+    path = directory / "model.pt"
+    state = {"config": config_to_dict(cfg), "step": 0, "disp_net": disp.state_dict()}
+    save_checkpoint(path, {**state, "pose_net": pose.state_dict()})
+    return path
 
 
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory) -> Path:
-    """An untrained checkpoint at 128x32 (aspect 4)."""
-    cfg = preset("default")
-    cfg.data.width, cfg.data.height = 128, 32
-    disp, pose = build_models(cfg)
-    path = tmp_path_factory.mktemp("ckpt") / "model.pt"
-    state = {"config": config_to_dict(cfg), "step": 0, "disp_net": disp.state_dict()}
-    save_checkpoint(path, {**state, "pose_net": pose.state_dict()})
-    return path
+    """An untrained checkpoint at 128x32 (aspect 4), full panoramas."""
+    return _checkpoint(tmp_path_factory.mktemp("ckpt"))
+
+
+@pytest.fixture(scope="module")
+def crop_ckpt(tmp_path_factory) -> Path:
+    """An untrained checkpoint of 90-degree crops of 512x32 panoramas (the network sees 128x32)."""
+    return _checkpoint(tmp_path_factory.mktemp("crop"), 512, 32, fov=90.0)
+
+
+def _expected_depth(predictor: Predictor, rgb: np.ndarray, camera: Camera, convert_to=None) -> np.ndarray:
+    """The depth ``predict`` must write for one ``uint8 [H,W,3]`` frame: the predictor's own output on
+    the frame (first resampled by the library's conversion when ``convert_to`` is given)."""
+    x = torch.from_numpy(np.array(rgb)).permute(2, 0, 1)[None].float() / 255
+    if convert_to is not None:
+        x = to_cylinder(x, camera, convert_to).clamp(0, 1)
+        camera = convert_to
+    return predictor.depth(x, camera)[0, 0].numpy()
+
+
+def _load_rgb(path: Path) -> np.ndarray:
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
 
 
 def _png(path: Path, width: int, height: int, seed: int = 0) -> Path:
@@ -66,12 +96,20 @@ def test_images_and_a_folder(ckpt, tmp_path, capsys):
     out = tmp_path / "out"
     assert _run(ckpt, a, b, folder, "--out", out, "--batch-size", "2") == 0
     assert "wrote 5 depth maps of 3 input(s)" in capsys.readouterr().out
-    for name, stem, shape in [("a", "a", (128, 512)), ("b", "b", (128, 512)), ("frames", "f01", (64, 256))]:
-        depth = np.load(out / name / f"{stem}.npy")
-        assert depth.dtype == np.float32 and depth.shape == shape
+    predictor = Predictor.from_checkpoint(ckpt, "cpu")
+    inputs = [("a", a), ("b", b)] + [("frames", folder / f"f{i:02d}.png") for i in range(3)]
+    for name, image in inputs:
+        depth = np.load(out / name / f"{image.stem}.npy")
+        rgb = _load_rgb(image)
+        h, w = rgb.shape[:2]
+        assert depth.dtype == np.float32 and depth.shape == (h, w)
         assert np.isfinite(depth).all() and (depth > 0).all()
-        with Image.open(out / name / f"{stem}.png") as im:
-            assert im.size == (shape[1], shape[0]) and im.mode == "RGB"
+        # the predictor's own depth of this very frame, taken as a full cylinder of the model's field of view
+        want = _expected_depth(predictor, rgb, CylindricalCamera.full(w, h, 1.0))
+        np.testing.assert_allclose(depth, want, rtol=1e-4)
+        with Image.open(out / name / f"{image.stem}.png") as im:
+            assert im.size == (w, h) and im.mode == "RGB"
+            np.testing.assert_array_equal(np.asarray(im), colorize_depth(depth))
     assert sorted(p.name for p in (out / "frames").iterdir()) == [
         f"f{i:02d}.{s}" for i in range(3) for s in ("npy", "png")
     ]
@@ -84,7 +122,14 @@ def test_video_with_preview_and_fps(ckpt, tmp_path):
     assert _run(ckpt, vid, "--out", out, "--no-png", "--batch-size", "4") == 0
     names = sorted(p.name for p in (out / "ride").iterdir())
     assert names == [f"{i:06d}.npy" for i in range(6)]  # --no-png
-    assert np.load(out / "ride" / "000005.npy").shape == (64, 256)
+    predictor = Predictor.from_checkpoint(ckpt, "cpu")
+    with av.open(str(vid)) as container:
+        decoded = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    for i in (0, 5):
+        depth = np.load(out / "ride" / f"{i:06d}.npy")
+        assert depth.shape == (64, 256)
+        want = _expected_depth(predictor, decoded[i], CylindricalCamera.full(256, 64, 1.0))
+        np.testing.assert_allclose(depth, want, rtol=1e-4)
     with av.open(str(out / "ride.mp4")) as container:
         stream = container.streams.video[0]
         frames = [f.to_ndarray(format="rgb24") for f in container.decode(stream)]
@@ -116,6 +161,16 @@ def test_equirectangular_input_is_converted_to_the_model_cylinder(ckpt, tmp_path
     target = model_camera(predictor)
     assert target.size == (128, 32) and target.wraps
     assert target.height / (2 * target.fy) == pytest.approx(1.0)
+    # the depth is the predictor's on the library's conversion into that cylinder
+    rgb = _load_rgb(img)
+    want = _expected_depth(predictor, rgb, EquirectangularCamera.full(256, 128), convert_to=target)
+    np.testing.assert_allclose(depth, want, rtol=1e-4)
+    # and not the depth of the same pixels merely resized (the equirectangular rows span +-90 degrees)
+    resized = _expected_depth(predictor, rgb, CylindricalCamera.full(256, 128, 1.0))
+    resized = torch.nn.functional.interpolate(
+        torch.from_numpy(resized)[None, None], size=(32, 128), mode="area"
+    )
+    assert not np.allclose(depth, resized[0, 0].numpy(), rtol=1e-3)
     # a cylindrical camera.json of the training field of view is used as it is (depth at input size)
     cyl = tmp_path / "cyl.json"
     CylindricalCamera.full(512, 128).to_json(cyl)
@@ -132,11 +187,40 @@ def test_wrong_aspect_is_refused_naming_the_file(ckpt, tmp_path, capsys):
     assert err.count("\n") == 1 and "square.png" in err and "100x100" in err
     assert "4.000" in err and "--camera" in err
     assert not (out / "square").exists()
-    # a pinhole camera is refused too
+    # a pinhole camera is refused too: it covers a quarter of the full panorama the model sees
     cam = tmp_path / "pinhole.json"
     PinholeCamera.from_fov(100, 100, 90).to_json(cam)
     assert _run(ckpt, bad, "--out", out, "--camera", cam) == 2
-    assert "pinhole" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "pinhole" in err and "full 360-degree panoramas" in err
+    assert not (out / "square").exists()
+
+
+def test_pinhole_input_feeds_a_model_trained_on_crops_it_covers(crop_ckpt, tmp_path, capsys):
+    """A 120-degree pinhole view covers the 90-degree crop the network sees: it is converted into the
+    model's cylinder and its depth is the predictor's on that conversion; a 60-degree view is refused."""
+    predictor = Predictor.from_checkpoint(crop_ckpt, "cpu")
+    target = model_camera(predictor)
+    assert target.size == (512, 32) and predictor.window(target) == (192, 320)
+    wide = PinholeCamera.from_fov(160, 160, 120)
+    assert coverage(wide, target, predictor.window(target)) == 1.0
+    assert coverage(wide, target, None) < 0.5  # a third of the turn at most
+    img = _png(tmp_path / "photo.png", 160, 160)
+    cam = tmp_path / "pinhole.json"
+    wide.to_json(cam)
+    out = tmp_path / "out"
+    assert _run(crop_ckpt, img, "--out", out, "--camera", cam) == 0
+    depth = np.load(out / "photo" / "photo.npy")
+    assert depth.shape == (32, 128)  # the crop the network sees, at its input size
+    want = _expected_depth(predictor, _load_rgb(img), wide, convert_to=target)
+    np.testing.assert_allclose(depth, want, rtol=1e-4)
+    narrow = tmp_path / "narrow.json"
+    PinholeCamera.from_fov(160, 160, 60).to_json(narrow)
+    assert _run(crop_ckpt, img, "--out", tmp_path / "out2", "--camera", narrow) == 2
+    err = capsys.readouterr().err
+    assert coverage(PinholeCamera.from_fov(160, 160, 60), target, (192, 320)) < MIN_COVERAGE
+    assert "narrow.json" in err and "90-degree crops" in err and "covers" in err
+    assert not (tmp_path / "out2" / "photo").exists()
 
 
 def test_corrupt_inputs_are_one_line_errors(ckpt, tmp_path, capsys):

@@ -21,8 +21,7 @@ import numpy as np
 
 from .atomic import atomic_write_bytes
 from .data.format import load_depth, load_image, save_png
-from .data.splits import make_splits
-from .data.synthetic import generate_dataset
+from .data.synth import generate_dataset
 from .errors import InputError
 
 __all__ = ["run_demo"]
@@ -114,11 +113,10 @@ def _generate(
     town, the others for training. Skipped when ``data`` already holds its test split."""
     if (data / "splits" / "default" / "test.txt").exists():
         return
-    generate_dataset(data, sequences=sequences, frames=frames, width=width, height=height, seed=seed,
-                     progress=progress, overwrite=True)  # fmt: skip
     test_fraction = test_sequences / sequences
     fractions = (1 - test_fraction - 1 / sequences, 1 / sequences, test_fraction)
-    make_splits(data, mode="sequence", fractions=fractions, seed=seed)
+    generate_dataset(data, sequences=sequences, frames=frames, width=width, height=height, seed=seed,
+                     progress=progress, overwrite=True, splits=True, split_fractions=fractions)  # fmt: skip
 
 
 def _train(data: Path, run: Path, width: int, height: int, minutes: float, seed: int, progress: bool):

@@ -4,8 +4,24 @@ from __future__ import annotations
 
 import argparse
 
-from ..errors import CylsfmError
 from .base import command
+
+
+def parse_split(text: str) -> tuple[float, float, float] | None:
+    """``"8,1,1"`` -> the fractions ``(0.8, 0.1, 0.1)`` of sequences in train, val and test; ``"none"`` ->
+    ``None``; an ``argparse`` type."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        weights = [float(v) for v in text.split(",")]
+    except ValueError:
+        weights = []
+    if len(weights) != 3 or min(weights) < 0 or sum(weights) <= 0:
+        raise argparse.ArgumentTypeError(
+            f"--split must be three non-negative numbers TRAIN,VAL,TEST (e.g. 8,1,1) or 'none', got {text!r}"
+        )
+    total = sum(weights)
+    return weights[0] / total, weights[1] / total, weights[2] / total
 
 
 def _synth_args(p: argparse.ArgumentParser) -> None:
@@ -29,7 +45,17 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--supersample", type=int, default=1, help="1: quincunx anti-aliasing; n: n x n rays a pixel"
     )
-    p.add_argument("--overwrite", action="store_true", help="replace sequences that already exist in OUT")
+    p.add_argument(
+        "--split",
+        type=parse_split,
+        default=(0.8, 0.1, 0.1),
+        metavar="TRAIN,VAL,TEST",
+        help="write the split OUT/splits/default/{train,val,test}.txt by sequence (whole rides held out), "
+        "with the sequences of OUT in these proportions (default 8,1,1; 'none': no split files)",
+    )
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace sequences (and the split) that already exist in OUT"
+    )
 
 
 @command(
@@ -37,21 +63,9 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
 )
 def run_synth(args: argparse.Namespace) -> int:
     import time
-    from pathlib import Path
 
-    from ..data.synthetic import SynthConfig, generate_dataset
+    from ..data.synth import SynthConfig, generate_dataset
 
-    for name in ("sequences", "frames", "width", "height"):
-        if getattr(args, name) < 1:
-            raise CylsfmError(f"--{name} must be at least 1, got {getattr(args, name)}")
-    if args.frames < 3:
-        raise CylsfmError(f"--frames must be at least 3 (a target and two sources), got {args.frames}")
-    existing = [
-        Path(args.out) / f"seq_{n:03d}" for n in range(args.first_index, args.first_index + args.sequences)
-    ]
-    existing = [d for d in existing if (d / "camera.json").exists() or (d / "images").is_dir()]
-    if existing and not args.overwrite:
-        raise CylsfmError(f"{existing[0]}: already holds a sequence (use --overwrite to replace it)")
     t0 = time.monotonic()
     dirs = generate_dataset(
         args.out,
@@ -66,8 +80,12 @@ def run_synth(args: argparse.Namespace) -> int:
         config=SynthConfig(supersample=args.supersample),
         first_index=args.first_index,
         overwrite=args.overwrite,
+        splits=args.split is not None,
+        split_fractions=args.split or (0.8, 0.1, 0.1),
     )
     n = args.sequences * args.frames
     dt = time.monotonic() - t0
     print(f"wrote {len(dirs)} sequences, {n} frames to {args.out} in {dt:.1f} s ({n / dt:.1f} frames/s)")
+    if args.split is not None:
+        print(f"split by sequence: {args.out}/splits/default/{{train,val,test}}.txt")
     return 0

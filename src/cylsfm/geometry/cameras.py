@@ -284,8 +284,8 @@ class CylindricalCamera(Camera):
         >>> point = torch.tensor([1.0, 0.0, 1.0]).reshape(1, 3, 1, 1)  # 45 degrees to the right, at eye level
         >>> cam.project(point).flatten()  # u = fx * pi/4 + cx = 320, v = cy
         tensor([320.0000,  63.5000])
-        >>> cam.depth_of(point).item() == 2**0.5  # cylindrical depth: the horizontal distance
-        True
+        >>> round(cam.depth_of(point).item(), 5)  # cylindrical depth: the horizontal distance
+        1.41421
         """
         return cls(
             width=width,
@@ -328,7 +328,9 @@ class CylindricalCamera(Camera):
 
         >>> cam = CylindricalCamera.full(4, 2)
         >>> points = cam.unproject(torch.full((1, 1, 2, 4), 2.0))
-        >>> torch.allclose(cam.project(points), cam.pixel_grid(1, points.device, points.dtype), atol=1e-5)
+        >>> points[0, :, 0, 2]  # the centre column looks straight ahead; row 0 is above the horizon
+        tensor([ 0., -1.,  2.])
+        >>> torch.allclose(cam.depth_of(points), torch.tensor(2.0))
         True
         """
         check_shape(depth, "B,1,H,W", "depth")

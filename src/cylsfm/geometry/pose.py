@@ -27,6 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..errors import check_shape
+
 ArrayT = TypeVar("ArrayT", Tensor, np.ndarray)
 
 __all__ = [
@@ -131,9 +133,15 @@ def matrix_to_axis_angle(rot: Tensor) -> Tensor:
 
 
 def pose_vec_to_mat(vec: Tensor) -> Tensor:
-    """Pose vector ``[..., 6]`` = (t, axis-angle) -> 4x4 transform ``[..., 4, 4]``."""
-    if vec.shape[-1] != 6:
-        raise ValueError(f"pose vectors must have 6 components, got shape {tuple(vec.shape)}")
+    """Pose vector ``[..., 6]`` = (t, axis-angle) -> 4x4 transform ``[..., 4, 4]``.
+
+    >>> T = pose_vec_to_mat(torch.tensor([1.0, 0.0, 0.0, 0.0, torch.pi / 2, 0.0]))
+    >>> (T @ torch.tensor([0.0, 0.0, 1.0, 1.0])).round(decimals=5)  # turn right by 90 degrees, then move
+    tensor([2., 0., 0., 1.])
+    >>> torch.allclose(mat_to_pose_vec(T), torch.tensor([1.0, 0.0, 0.0, 0.0, torch.pi / 2, 0.0]))
+    True
+    """
+    check_shape(vec, "*,6", "pose vectors (6 components)")
     rot = axis_angle_to_matrix(vec[..., 3:])
     top = torch.cat((rot, vec[..., :3].unsqueeze(-1)), -1)
     bottom = torch.zeros_like(top[..., :1, :])
@@ -170,6 +178,11 @@ def relative_pose(c2w_target: Tensor, c2w_source: Tensor) -> Tensor:
     """``T_tgt_to_src = inv(c2w_source) @ c2w_target``: maps target-camera points into the source camera.
 
     ``c2w_*`` are camera-to-world transforms ``[..., 4, 4]`` as stored in TUM files.
+
+    >>> target, source = torch.eye(4), torch.eye(4)
+    >>> source[2, 3] = 1.0  # the source camera is one metre further forward
+    >>> relative_pose(target, source)[:3, 3]  # so a target point is one metre closer to it
+    tensor([ 0.,  0., -1.])
     """
     return invert(c2w_source) @ c2w_target
 
@@ -218,8 +231,7 @@ def tum_to_mat(tum: Tensor) -> Tensor:
 
     (The leading timestamp of a TUM line is not part of ``tum``.)
     """
-    if tum.shape[-1] != 7:
-        raise ValueError(f"TUM poses have 7 values (tx ty tz qx qy qz qw), got shape {tuple(tum.shape)}")
+    check_shape(tum, "*,7", "TUM poses (7 values: tx ty tz qx qy qz qw)")
     rot = quaternion_to_matrix(tum[..., 3:])
     top = torch.cat((rot, tum[..., :3].unsqueeze(-1)), -1)
     bottom = torch.zeros_like(top[..., :1, :])

@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..errors import InputError
 from .pose import invert, yaw_transform
 
 __all__ = [
@@ -195,7 +196,7 @@ def pad_cat(
     if width is None:
         width = parts[0].shape[-1] - starts_t[0]
     if not 0 <= pad <= width:
-        raise ValueError(f"pad_cat: padding {pad} must be in [0, width={width}]")
+        raise InputError(f"pad_cat: padding {pad} must be in [0, width={width}]")
     fmt = memory_format if memory_format is not None else memory_format_of(parts[0])
     return _PadCat.apply(pad, int(width), starts_t, fmt, *parts)
 
@@ -305,7 +306,7 @@ def resize_image(x: Tensor, size: tuple[int, int], wrap: bool) -> Tensor:
         return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
     w = x.shape[-1]
     if w_out % w:
-        raise ValueError(f"a wrapping resize needs an integer width factor, got {w} -> {w_out} columns")
+        raise InputError(f"a wrapping resize needs an integer width factor, got {w} -> {w_out} columns")
     factor = w_out // w
     # A plain autograd concatenation (not circular_pad's lean backward): these maps are small, and it
     # keeps the order in which gradients are summed, hence the training numbers, as they always were.

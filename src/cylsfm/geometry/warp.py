@@ -6,6 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..errors import InputError, ShapeError, check_shape
 from .cameras import Camera
 from .seam import circular_pad, resize_image
 
@@ -80,24 +81,30 @@ def inverse_warp(
         ``(warped [B,C,H,W], valid [B,1,H,W] bool)``: ``warped`` is 0 where ``valid`` is false (sample
         outside the image vertically, or horizontally without wrap, point not projectable, or depth
         ``<= 0``).
+
+    A camera turned by a quarter of a turn sees the panorama rolled by a quarter of its width, across
+    the seam:
+
+    >>> from cylsfm.geometry import CylindricalCamera, roll_columns, yaw_matrix
+    >>> cam = CylindricalCamera.full(8, 2)
+    >>> image = torch.arange(16.0).reshape(1, 1, 2, 8)
+    >>> turn = torch.eye(4).unsqueeze(0)
+    >>> turn[0, :3, :3] = yaw_matrix(torch.pi / 2)
+    >>> warped, valid = inverse_warp(image, torch.ones(1, 1, 2, 8), turn, cam)
+    >>> torch.allclose(warped, roll_columns(image, -2), atol=1e-4), bool(valid.all())
+    (True, True)
     """
-    if src_image.dim() != 4 or tgt_depth.dim() != 4 or tgt_depth.shape[1] != 1:
-        raise ValueError(
-            f"expected src_image [B,C,H,W] and tgt_depth [B,1,H,W], got {tuple(src_image.shape)} and "
-            f"{tuple(tgt_depth.shape)}"
-        )
+    check_shape(src_image, "B,C,H,W", "src_image")
+    check_shape(tgt_depth, "B,1,H,W", "tgt_depth")
     if src_image.shape[-2:] != tgt_depth.shape[-2:] or src_image.shape[0] != tgt_depth.shape[0]:
-        raise ValueError(
+        raise ShapeError(
             f"src_image {tuple(src_image.shape)} and tgt_depth {tuple(tgt_depth.shape)} differ in batch or size"
         )
-    if T_tgt_to_src.shape != (src_image.shape[0], 4, 4):
-        raise ValueError(
-            f"T_tgt_to_src must be [B,4,4] with B={src_image.shape[0]}, got {tuple(T_tgt_to_src.shape)}"
-        )
+    check_shape(T_tgt_to_src, f"{src_image.shape[0]},4,4", "T_tgt_to_src")
     if wrap is None:
         wrap = camera.wraps
     elif wrap and not camera.wraps:
-        raise ValueError("wrap=True needs a full 360-degree cylindrical camera (fx * 2 pi == width)")
+        raise InputError("wrap=True needs a full 360-degree cylindrical camera (fx * 2 pi == width)")
     # Geometry runs in float32 even under autocast: half precision cannot place a point 80 m away to a
     # fraction of a pixel.
     with torch.autocast(device_type=src_image.device.type, enabled=False):

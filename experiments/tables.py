@@ -11,29 +11,31 @@ import json
 import sys
 from pathlib import Path
 
-DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+from cylsfm.evaluate.depth_metrics import DEPTH_METRICS
+from cylsfm.evaluate.pose import POSE_TABLE_METRICS
+from cylsfm.evaluate.tables import markdown_row, markdown_rule
 
 
 def _load(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def _row(label: str, values: list[str]) -> str:
-    return "| " + " | ".join([label, *values]) + " |"
+def _header(columns: list[str]) -> list[str]:
+    return [markdown_row("", columns), markdown_rule(len(columns))]
 
 
 def depth_table(runs: list[tuple[str, Path]]) -> list[str]:
-    lines = [_row("", list(DEPTH_KEYS)), "|---" * (len(DEPTH_KEYS) + 1) + "|"]
+    lines = _header(list(DEPTH_METRICS))
     base = None
     for label, run in runs:
         d = _load(run / "depth.json")
         if d is None:
             continue
         base = base or d["baselines"]
-        lines.append(_row(label, [f"{d[k]:.4f}" for k in DEPTH_KEYS]))
+        lines.append(markdown_row(label, [d[k] for k in DEPTH_METRICS]))
     if base:
         for name, b in base.items():
-            lines.append(_row(name.replace("_", "-") + " baseline", [f"{b[k]:.4f}" for k in DEPTH_KEYS]))
+            lines.append(markdown_row(name.replace("_", "-") + " baseline", [b[k] for k in DEPTH_METRICS]))
         lines.append("")
         for label, run in runs:
             d = _load(run / "depth.json")
@@ -48,7 +50,7 @@ def depth_table(runs: list[tuple[str, Path]]) -> list[str]:
 def seam_table(runs: list[tuple[str, Path]]) -> list[str]:
     """Depth next to the seam of the panoramas and around the image centre (``depth.json``'s ``seam``
     and ``centre`` entries)."""
-    lines = [_row("", list(DEPTH_KEYS)), "|---" * (len(DEPTH_KEYS) + 1) + "|"]
+    lines = _header(list(DEPTH_METRICS))
     for part in ("seam", "centre"):
         base = None
         for label, run in runs:
@@ -56,36 +58,33 @@ def seam_table(runs: list[tuple[str, Path]]) -> list[str]:
             if d is None or not d.get(part):
                 continue
             base = base or d["baselines"]
-            lines.append(_row(f"{label} @{part}", [f"{d[part][k]:.4f}" for k in DEPTH_KEYS]))
+            lines.append(markdown_row(f"{label} @{part}", [d[part][k] for k in DEPTH_METRICS]))
         for name, b in (base or {}).items():
             if b and b.get(part):
                 label = name.replace("_", "-") + f" baseline @{part}"
-                lines.append(_row(label, [f"{b[part][k]:.4f}" for k in DEPTH_KEYS]))
+                lines.append(markdown_row(label, [b[part][k] for k in DEPTH_METRICS]))
     return lines
 
 
 def pose_table(runs: list[tuple[str, Path]], name: str) -> list[str]:
-    keys = ("ate_mean", "ate_std", "ape_rmse", "rpe_trans_rmse", "rpe_rot_deg_rmse")
-    lines = [_row("", list(keys)), "|---" * (len(keys) + 1) + "|"]
+    keys = POSE_TABLE_METRICS
+    lines = _header(list(keys))
     base = None
     for label, run in runs:
         d = _load(run / name)
         if d is None:
             continue
         base = base or d["baselines"]
-        lines.append(_row(label, [f"{d[k]:.4f}" for k in keys]))
+        lines.append(markdown_row(label, [d[k] for k in keys]))
     if base:
         for bname, b in base.items():
-            lines.append(_row(bname.replace("_", " "), [f"{b[k]:.4f}" if k in b else "-" for k in keys]))
+            lines.append(markdown_row(bname.replace("_", " "), [b.get(k) for k in keys]))
     return lines
 
 
 def yaw_seeds(runs: list[tuple[str, Path]]) -> list[str]:
     """Snippet ATE over several random-yaw rolls of the test rides (``pose_yaw_SEED.json`` files)."""
-    lines = [
-        _row("", ["rolls", "snippet ATE mean (over rolls)", "min", "max", "constant velocity", "unrolled"]),
-        "|---" * 7 + "|",
-    ]
+    lines = _header(["rolls", "snippet ATE mean (over rolls)", "min", "max", "constant velocity", "unrolled"])
     for label, run in runs:
         files = sorted(run.glob("pose_yaw_*.json"))
         if not files:
@@ -94,19 +93,16 @@ def yaw_seeds(runs: list[tuple[str, Path]]) -> list[str]:
         ate = [d["ate_mean"] for d in ds]
         cv = sum(d["baselines"]["constant_velocity"]["ate_mean"] for d in ds) / len(ds)
         plain = _load(run / "pose.json")
-        lines.append(
-            _row(
-                label,
-                [
-                    f"{len(ds)} seeds x 3 rides",
-                    f"{sum(ate) / len(ate):.4f}",
-                    f"{min(ate):.4f}",
-                    f"{max(ate):.4f}",
-                    f"{cv:.4f}",
-                    f"{plain['ate_mean']:.4f}" if plain else "-",
-                ],
-            )
-        )
+        mean = sum(ate) / len(ate)
+        cells = [
+            f"{len(ds)} seeds x 3 rides",
+            mean,
+            min(ate),
+            max(ate),
+            cv,
+            plain["ate_mean"] if plain else None,
+        ]
+        lines.append(markdown_row(label, cells))
     return lines
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -12,6 +13,7 @@ import torch
 
 from cylsfm.cli import main
 from cylsfm.data import DatasetError, SequenceWriter, make_splits, scan_dataset
+from cylsfm.errors import InputError
 from cylsfm.evaluate.depth import (
     DEPTH_METRICS,
     DepthAccumulator,
@@ -44,11 +46,11 @@ def test_depth_errors_by_hand():
 def test_depth_errors_accepts_tensors_and_rejects_bad_input():
     e = depth_errors(torch.tensor([1.0, 2.0]), torch.tensor([1.0, 2.0]))
     assert e["abs_rel"] == 0 and e["a1"] == 1
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError):
         depth_errors(np.array([1.0, 0.0]), np.array([1.0, 1.0]))
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError):
         depth_errors(np.array([1.0]), np.array([1.0, 1.0]))
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError):
         depth_errors(np.array([]), np.array([]))
 
 
@@ -94,14 +96,35 @@ def test_clamping_and_empty_images():
     assert r["rmse"] == pytest.approx(math.sqrt(70**2 * 4 / 16))
 
 
+def _bilinear_coordinate(n_out: int, n_in: int) -> np.ndarray:
+    """Source coordinates of the output pixel centres of a resize from ``n_in`` to ``n_out`` samples
+    (``align_corners=False``): ``x = (x' + 0.5) n_in / n_out - 0.5``."""
+    return (np.arange(n_out) + 0.5) * n_in / n_out - 0.5
+
+
 def test_prediction_resized_to_ground_truth():
-    gt = np.tile(np.arange(1.0, 9.0)[:, None], (1, 16))  # depth grows with the row
-    small = gt[::2, ::2] * 0 + 5.0
-    assert resize_depth(small, gt.shape).shape == gt.shape
+    """A ramp at half size, resized bilinearly at pixel centres: exact inside, clamped at the borders,
+    blended across the seam with ``wrap``; the evaluation scores the resized map."""
+    gt = np.tile(np.arange(1.0, 9.0)[:, None], (1, 16)) + np.linspace(0, 3, 16)  # grows down and along
+    v, u = np.mgrid[0:4, 0:8].astype(np.float64)
+    small = 2.0 + v + 0.5 * u  # [4,8]: a ramp along both axes, so a wrong resize changes the values
+    rows = np.clip(_bilinear_coordinate(8, 4), 0, 3)
+    cols = np.clip(_bilinear_coordinate(16, 8), 0, 7)
+    want = 2.0 + rows[:, None] + 0.5 * cols[None, :]  # bilinear is exact on a ramp, clamped at the edges
+    assert np.allclose(resize_depth(small, gt.shape), want, atol=1e-12)
+    # across the seam: the outer columns blend with the opposite edge (column -0.25 = 3/4 col 0 + 1/4 col 7)
+    x = _bilinear_coordinate(16, 8)
+    lo = np.floor(x).astype(int)
+    frac = x - lo
+    ramp = 0.5 * np.arange(8.0)
+    wrapped = 2.0 + rows[:, None] + ((1 - frac) * ramp[lo % 8] + frac * ramp[(lo + 1) % 8])[None, :]
+    assert np.allclose(resize_depth(small, gt.shape, wrap=True), wrapped, atol=1e-12)
+    assert not np.allclose(wrapped, want)
     r = evaluate_depth_maps([(gt, small)])
-    const = evaluate_depth_maps([(gt, np.ones_like(gt))])
+    exact = evaluate_depth_maps([(gt, want)])
     for k in DEPTH_METRICS:
-        assert r[k] == pytest.approx(const[k])
+        assert r[k] == pytest.approx(exact[k], rel=1e-12)
+    assert r["abs_rel"] != pytest.approx(evaluate_depth_maps([(gt, np.ones_like(gt))])["abs_rel"])
 
 
 def test_row_prior_histogram_median_and_resampling():
@@ -151,8 +174,27 @@ def test_seam_columns_scored_with_the_whole_image_scale():
     acc.add(gt, pred, seam=False)
     assert acc.result()["seam"]["n_images"] == 1
     assert DepthAccumulator().add(gt, pred, seam=True) and DepthAccumulator().result()["seam"] is None
-    with pytest.raises(ValueError, match="seam_fraction"):
+    with pytest.raises(InputError, match="seam_fraction"):
         DepthAccumulator(seam_fraction=1.5)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"batch_size": 0}, "batch_size"),
+        ({"min_depth": 0.0}, "min_depth"),
+        ({"min_depth": 5.0, "max_depth": 2.0}, "min_depth"),
+        ({"seam_fraction": -0.1}, "seam_fraction"),
+        ({"seam_fraction": 1.5}, "seam_fraction"),
+        ({"seam_fraction": math.nan}, "seam_fraction"),
+    ],
+)
+def test_invalid_arguments_are_input_errors_before_any_file_is_read(tmp_path, kwargs, match):
+    # checked first: the (empty) dataset would otherwise be the error
+    with pytest.raises(InputError, match=match):
+        evaluate_depth(_ColumnPredictor(True), tmp_path / "nothing", **kwargs)
+    with pytest.raises(InputError, match="yaw_roll"):
+        evaluate_depth(str(tmp_path), tmp_path / "nothing", yaw_roll=0)
 
 
 # --------------------------------------------------------------------------------------- toy dataset
@@ -336,7 +378,7 @@ def test_yaw_roll_turns_images_and_ground_truth_together(tmp_path):
     prior = _ColumnPredictor(False, (1.0 + 40.0 * red / 255.0).astype(np.float64))
     assert evaluate_depth(prior, tmp_path, split="test")["model"]["abs_rel"] == pytest.approx(0, abs=1e-6)
     assert evaluate_depth(prior, tmp_path, split="test", yaw_roll=3)["model"]["abs_rel"] > 0.1
-    with pytest.raises(ValueError, match="yaw_roll"):
+    with pytest.raises(InputError, match="yaw_roll"):
         evaluate_depth(str(tmp_path), tmp_path, split="test", yaw_roll=0)
 
 
@@ -362,4 +404,5 @@ def test_cli_yaw_roll_needs_a_checkpoint(synth, capsys):
     root, _ = synth
     args = ["evaluate", "depth", "--predictions", str(root), "--data", str(root), "--yaw-roll", "1"]
     assert main(args) == 2
-    assert "--yaw-roll" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert re.search("yaw[-_]roll", err) and "Traceback" not in err

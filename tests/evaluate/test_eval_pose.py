@@ -11,8 +11,8 @@ import torch
 
 from cylsfm.cli import main
 from cylsfm.data import make_splits, read_tum, scan_dataset, write_tum
+from cylsfm.errors import InputError
 from cylsfm.evaluate.pose import (
-    _baseline_trajectories,
     ate_positions,
     chain_poses,
     consecutive_from_windows,
@@ -23,7 +23,8 @@ from cylsfm.evaluate.pose import (
     snippet_ates,
     trajectory_metrics,
 )
-from cylsfm.geometry import axis_angle_to_matrix, relative_pose
+from cylsfm.evaluate.pose_metrics import baseline_trajectories
+from cylsfm.geometry import axis_angle_to_matrix, relative_pose, yaw_matrix
 
 
 def _trajectory(n: int, seed: int = 0) -> np.ndarray:
@@ -59,7 +60,7 @@ def test_ate_by_hand():
     assert ate_positions(gt, pred) == pytest.approx(math.sqrt(0.5) / 3)
     # zero motion: s = 0, the error is the ground truth itself
     assert ate_positions(gt, np.zeros((3, 3))) == pytest.approx(math.sqrt(5) / 3)
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError):
         ate_positions(gt, pred[:2])
 
 
@@ -126,7 +127,7 @@ def test_consecutive_poses_from_network_windows(seq_length):
     broken[k + 1][k - 1] = np.eye(4)  # the window centred on k+1: its prediction for source k
     again = consecutive_from_windows(broken, m, seq_length)
     assert np.allclose(again[k], steps[k], atol=1e-9)
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError):
         consecutive_from_windows(windows, seq_length - 1, seq_length)
 
 
@@ -148,7 +149,7 @@ def test_evo_ape_of_sim3_copy_is_zero():
 def test_baseline_trajectories():
     line = _sim3(constant_velocity_trajectory(10, 0.8), 1.0)
     times = np.arange(10.0)
-    base, curves = _baseline_trajectories(line, times, np.arange(10))
+    base, curves = baseline_trajectories(line, times, np.arange(10))
     assert base["constant_velocity"]["ape_rmse"] < 1e-9
     assert base["constant_velocity"]["scale"] == pytest.approx(0.8)
     # zero motion at the centroid: the RMS distance of the positions from their centroid
@@ -241,19 +242,21 @@ def test_cli_pose_checkpoint_then_trajectory(synth, tmp_path, capsys):
 class _OraclePoses:
     """A stand-in for the pose network that returns the true relative poses of the frames it is shown.
 
-    It finds out how far its frames were rolled (by matching them with the dataset's own frames) and,
-    when ``equivariant``, turns the true motion with the roll; otherwise it ignores the roll, as the
-    paper's roll-invariant pose head must.
+    It finds out how far its frames were rolled (by matching them with the dataset's own frames) and turns
+    the true motion with the roll ``turn`` times: ``1`` is what an equivariant network must do (a panorama
+    rolled by ``k`` of ``W`` columns is the camera turned by ``yaw_matrix(2 pi k / W)``, so ``T`` becomes
+    ``Y T Y^-1``), ``0`` ignores the roll as the paper's roll-invariant pose head must, ``-1`` turns the
+    wrong way. Built from the public geometry only (``yaw_matrix``), not from the evaluator's helpers.
     """
 
-    def __init__(self, seq, equivariant: bool):
-        from cylsfm.data.format import load_image
+    def __init__(self, seq, turn: int):
+        from cylsfm.data import load_image
 
         self.frames = [
             torch.from_numpy(np.array(load_image(p))).permute(2, 0, 1).float() / 255 for p in seq.images
         ]
         self.c2w = seq.poses
-        self.equivariant = equivariant
+        self.turn = turn
         self.config = type("C", (), {"data": type("D", (), {"seq_length": 3, "stride": 1})()})()
 
     def _locate(self, image):
@@ -268,16 +271,12 @@ class _OraclePoses:
         out = []
         for b in range(target.shape[0]):
             t, k = self._locate(target[b])
+            yaw = np.eye(4)
+            yaw[:3, :3] = yaw_matrix(self.turn * 2 * math.pi * k / camera.width, torch.float64).numpy()
             rel = []
             for s in range(sources.shape[1]):
                 j, _ = self._locate(sources[b, s])
-                T = np.linalg.inv(self.c2w[j]) @ self.c2w[t]
-                if self.equivariant:
-                    from cylsfm.evaluate.pose import _yaw4
-
-                    y = _yaw4(2 * np.pi * k / camera.width)
-                    T = y @ T @ np.linalg.inv(y)
-                rel.append(T)
+                rel.append(yaw @ np.linalg.inv(self.c2w[j]) @ self.c2w[t] @ np.linalg.inv(yaw))
             out.append(np.stack(rel))
         return torch.from_numpy(np.stack(out))
 
@@ -287,10 +286,43 @@ def test_yaw_rolled_evaluation_turns_the_ground_truth_with_the_images(synth):
     root, _ = synth
     seq = scan_dataset(root)[1]
     kwargs = {"split": "test", "snippet": 5, "yaw_roll": 3}
-    exact = evaluate_pose(_OraclePoses(seq, equivariant=True), root, **kwargs)
+    exact = evaluate_pose(_OraclePoses(seq, turn=1), root, **kwargs)
     assert exact["model"]["ate_mean"] == pytest.approx(0, abs=1e-6)
-    assert exact["sequences"][seq.name]["yaw_roll_columns"] > 0
-    blind = evaluate_pose(_OraclePoses(seq, equivariant=False), root, **kwargs)
+    assert exact["model"]["ape_rmse"] == pytest.approx(0, abs=1e-6)
+    assert exact["model"]["rpe_trans_rmse"] == pytest.approx(0, abs=1e-6)
+    roll = exact["sequences"][seq.name]["yaw_roll_columns"]
+    assert 0 < roll < seq.camera.width and 2 * roll != seq.camera.width  # a turn whose sign matters
+    blind = evaluate_pose(_OraclePoses(seq, turn=0), root, **kwargs)
     assert blind["model"]["ate_mean"] > 0.05
-    plain = evaluate_pose(_OraclePoses(seq, equivariant=False), root, split="test", snippet=5)
+    plain = evaluate_pose(_OraclePoses(seq, turn=0), root, split="test", snippet=5)
     assert plain["model"]["ate_mean"] == pytest.approx(0, abs=1e-6)
+
+
+def test_yaw_rolled_evaluation_refuses_the_turn_the_wrong_way(synth):
+    """An oracle that turns the motion with the roll the wrong way (off by twice the roll) scores badly:
+    the evaluation knows which way a rolled panorama turned."""
+    root, _ = synth
+    seq = scan_dataset(root)[1]
+    kwargs = {"split": "test", "snippet": 5, "yaw_roll": 3}
+    wrong = evaluate_pose(_OraclePoses(seq, turn=-1), root, **kwargs)
+    assert wrong["model"]["ate_mean"] > 0.05 and wrong["model"]["rpe_trans_rmse"] > 0.5
+    # its chained trajectory is the true one turned as a whole, which the Sim(3) alignment of the APE
+    # removes: the snippet ATE and the RPE are the measures that see a wrong turn
+    assert wrong["model"]["ape_rmse"] == pytest.approx(0, abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"snippet": 1}, "snippet"),
+        ({"stride": 0}, "stride"),
+        ({"batch_size": 0}, "batch_size"),
+    ],
+)
+def test_invalid_arguments_are_input_errors_before_any_file_is_read(tmp_path, kwargs, match):
+    # checked first: the (empty) dataset would otherwise be the error
+    for given in (str(tmp_path), _OraclePoses.__new__(_OraclePoses)):
+        with pytest.raises(InputError, match=match):
+            evaluate_pose(given, tmp_path / "nothing", **kwargs)
+    with pytest.raises(InputError, match="yaw_roll"):
+        evaluate_pose(str(tmp_path), tmp_path / "nothing", yaw_roll=0)

@@ -13,7 +13,7 @@ import statistics
 import tempfile
 import time
 
-from cylsfm.data.synthetic import SynthConfig, generate_dataset
+from cylsfm.data.synth import SynthConfig, generate_dataset
 
 
 def main(argv: list[str] | None = None) -> None:

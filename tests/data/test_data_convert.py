@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from cylsfm.data.convert import plan_resampling, to_cylinder
-from cylsfm.data.synthetic import StreetScene, SynthConfig, make_camera, render_frame
+from cylsfm.data.synth import StreetScene, SynthConfig, make_camera, render_frame
 from cylsfm.errors import InputError
 from cylsfm.geometry import CylindricalCamera, EquirectangularCamera, PinholeCamera
 

@@ -18,7 +18,7 @@ from cylsfm.data import (
     StaticFilter,
     camera_of,
 )
-from cylsfm.data.room import make_pose, render_room
+from cylsfm.data.synth.room import make_pose, render_room
 from cylsfm.errors import InputError
 from cylsfm.geometry import relative_pose, yaw_matrix
 from cylsfm.geometry.seam import roll_pose

@@ -20,7 +20,7 @@ from cylsfm.data import (
     scan_dataset,
     write_tum,
 )
-from cylsfm.data.room import make_pose
+from cylsfm.data.synth.room import make_pose
 from cylsfm.errors import InputError
 
 W, H = 64, 16

@@ -1,5 +1,6 @@
 """Colouring depth maps by inverse depth, and stacking previews."""
 
+import matplotlib
 import numpy as np
 import pytest
 
@@ -42,16 +43,33 @@ def test_robust_percentiles_and_fixed_limits():
     out = colorize_depth(depth)
     assert np.abs(_lightness(out[5, 10]) - _lightness(out[5, 80])) > 100
     np.testing.assert_array_equal(out[0, 0], out[5, 10])  # clipped to the brightest colour
-    # fixed limits: depth <= vmin brightest, >= vmax darkest, the same colours in every frame
-    a = colorize_depth(depth, vmin=2.0, vmax=20.0)
-    b = colorize_depth(depth * 1.0, vmin=2.0, vmax=20.0)
-    np.testing.assert_array_equal(a, b)
+    # fixed limits: depth <= vmin brightest, >= vmax darkest
     top = colorize_depth(np.array([[1.0, 2.0, 20.0, 100.0]], np.float32), vmin=2.0, vmax=20.0)
     np.testing.assert_array_equal(top[0, 0], top[0, 1])
     np.testing.assert_array_equal(top[0, 2], top[0, 3])
     assert _lightness(top[0, 0]) > _lightness(top[0, 2])
     with pytest.raises(ValueError, match="vmin"):
         colorize_depth(depth, vmin=0.0)
+
+
+def test_fixed_limits_give_the_same_colours_in_every_frame():
+    """Two frames of different depth ranges share depths 4, 8 and 12 m: with fixed limits each depth has one
+    colour, that of its inverse depth's place between 1 / vmax and 1 / vmin; without limits it has not."""
+    near = np.tile(np.linspace(1.5, 12.0, 64, dtype=np.float32), (4, 1))
+    far = np.tile(np.linspace(4.0, 60.0, 64, dtype=np.float32), (4, 1))
+    near[0, :3] = far[0, :3] = (4.0, 8.0, 12.0)
+    vmin, vmax = 2.0, 20.0
+    a, b = colorize_depth(near, vmin, vmax), colorize_depth(far, vmin, vmax)
+    np.testing.assert_array_equal(a[0, :3], b[0, :3])
+    lut = np.round(matplotlib.colormaps["magma"](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
+    for frame, out in ((near, a), (far, b)):
+        t = np.clip((1 / frame - 1 / vmax) / (1 / vmin - 1 / vmax), 0, 1)
+        np.testing.assert_array_equal(out, lut[np.round(t * 255).astype(int)])
+    # the negative: each frame stretched over its own percentiles colours the same depths differently
+    auto_a, auto_b = colorize_depth(near), colorize_depth(far)
+    assert all((auto_a[0, i] != auto_b[0, i]).any() for i in range(3))
+    # only one limit fixed: the other end still follows the frame
+    assert (colorize_depth(near, vmin=vmin)[0, :3] != colorize_depth(far, vmin=vmin)[0, :3]).any()
 
 
 def test_constant_depth_and_bad_input():

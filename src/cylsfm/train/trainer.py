@@ -20,7 +20,6 @@ import os
 import random
 import time
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +38,9 @@ from ..losses import image_pyramid, view_synthesis_loss
 from ..model.build import build_models
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.config import TrainConfig, config_from_dict, config_to_dict, save_config
-from ..runtime import pick_device, progress_bar
+from ..runtime import progress_bar
+from .distributed import init_distributed
+from .rng import restore_rng, rng_state
 from .sampler import ResumableSampler, SeededDataset
 
 __all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "train"]
@@ -63,42 +64,12 @@ class SfMNet(nn.Module):
         return disps, pose_vec, masks
 
 
-@dataclass
-class _Dist:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-
-def _init_distributed(device_name: str) -> tuple[_Dist, torch.device]:
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return _Dist(), pick_device(device_name)
-    rank = int(os.environ["RANK"])
-    local = int(os.environ.get("LOCAL_RANK", "0"))
-    use_cuda = (torch.cuda.is_available() and device_name in ("auto", "cuda")) or device_name.startswith(
-        "cuda"
-    )
-    if use_cuda:
-        torch.cuda.set_device(local)
-        device = torch.device("cuda", local)
-    else:
-        device = torch.device("cpu")
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if use_cuda else "gloo")
-    return _Dist(rank, world, local), device
-
-
 class Trainer:
     """Trains the networks of ``cfg`` into ``run_dir`` (see the module docstring)."""
 
     def __init__(self, cfg: TrainConfig, run_dir: str | os.PathLike[str], resume: bool = False) -> None:
         self.run_dir = Path(run_dir)
-        self.dist, self.device = _init_distributed(cfg.device)
+        self.dist, self.device = init_distributed(cfg.device)
         state = None
         if resume:
             ckpt = self.run_dir / "checkpoints" / "latest.pt"
@@ -298,13 +269,6 @@ class Trainer:
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict[str, Any]:
-        rng = {
-            "torch": torch.get_rng_state(),
-            "numpy": _numpy_state_to_list(np.random.get_state()),  # noqa: NPY002
-            "python": _python_state_to_list(random.getstate()),
-        }
-        if torch.cuda.is_available():
-            rng["cuda"] = torch.cuda.get_rng_state_all()
         return {
             "config": config_to_dict(self.cfg),
             "step": self.step,
@@ -312,7 +276,7 @@ class Trainer:
             "pose_net": self.model.pose_net.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "scaler": self.scaler.state_dict(),
-            "rng": rng,
+            "rng": rng_state(),
             "sampler": {"consumed": self.step * self.cfg.batch_size, "seed": self.cfg.seed},
         }
 
@@ -324,15 +288,7 @@ class Trainer:
         if state.get("scaler"):
             self.scaler.load_state_dict(state["scaler"])
         self.step = int(state["step"])
-        rng = state.get("rng") or {}
-        if "torch" in rng:
-            torch.set_rng_state(rng["torch"])
-        if "numpy" in rng:
-            np.random.set_state(_numpy_state_from_list(rng["numpy"]))  # noqa: NPY002
-        if "python" in rng:
-            random.setstate(_python_state_from_list(rng["python"]))
-        if "cuda" in rng and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(rng["cuda"])
+        restore_rng(state.get("rng") or {})
 
     def save(self, keep: bool = False) -> None:
         if not self.dist.main:
@@ -476,33 +432,6 @@ def train(
         trainer.close()
 
 
-# ----------------------------------------------------------------------------- RNG states as plain data
 def _is_strip_root(root: Path) -> bool:
     """A dataset prepared for the original SfMLearner code: ``train.txt`` and no format-v1 sequences."""
     return (root / "train.txt").is_file() and not any(root.glob("*/camera.json"))
-
-
-def _numpy_state_to_list(state: tuple) -> list:
-    name, keys, pos, has_gauss, cached = state
-    return [name, torch.from_numpy(np.asarray(keys, dtype=np.int64)), int(pos), int(has_gauss), float(cached)]
-
-
-def _numpy_state_from_list(data: list) -> tuple:
-    name, keys, pos, has_gauss, cached = data
-    return (
-        name,
-        np.asarray(keys.numpy() if isinstance(keys, Tensor) else keys, dtype=np.uint32),
-        pos,
-        has_gauss,
-        cached,
-    )
-
-
-def _python_state_to_list(state: tuple) -> list:
-    version, internal, gauss = state
-    return [version, list(internal), gauss]
-
-
-def _python_state_from_list(data: list) -> tuple:
-    version, internal, gauss = data
-    return (version, tuple(internal), gauss)

@@ -276,7 +276,7 @@ def test_missing_prediction_names_the_file(tmp_path):
 def synth(tmp_path_factory):
     """2 synthetic sequences x 8 frames at 128x32 (train: one sequence, test: the other) and an untrained
     checkpoint."""
-    from cylsfm.data.synthetic import generate_dataset
+    from cylsfm.data.synth import generate_dataset
     from cylsfm.model import build_models, save_checkpoint
     from cylsfm.model.config import config_to_dict, preset
 

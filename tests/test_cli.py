@@ -1,11 +1,13 @@
 import json
+import math
 import subprocess
 import sys
 
 import pytest
 
 from cylsfm import __version__
-from cylsfm.cli import main
+from cylsfm.cli import build_parser, main, train_config_from_args
+from cylsfm.model.config import apply_overrides, preset, save_config
 
 
 def test_version_and_help(capsys):
@@ -39,3 +41,99 @@ def test_bad_camera_file_is_one_clear_line(tmp_path, capsys):
     assert main(["camera", "show", str(bad)]) == 2
     err = capsys.readouterr().err
     assert str(bad) in err and "missing key" in err and "Traceback" not in err
+
+
+def test_camera_new_writes_each_model(tmp_path, capsys):
+    equi = tmp_path / "equirect.json"
+    assert (
+        main(["camera", "new", str(equi), "--model", "equirectangular", "--width", "256", "--height", "128"])
+        == 0
+    )
+    data = json.loads(equi.read_text())
+    assert data["model"] == "equirectangular" and data["fx"] * 2 * math.pi == pytest.approx(256)
+    assert data["fy"] * math.pi == pytest.approx(128)  # the whole sphere: rows span +-90 degrees
+    pin = tmp_path / "pinhole.json"
+    assert main(["camera", "new", str(pin), "--model", "pinhole", "--width", "100", "--height", "80"]) == 2
+    assert "--hfov" in capsys.readouterr().err and not pin.exists()
+    assert (
+        main(
+            [
+                "camera",
+                "new",
+                str(pin),
+                "--model",
+                "pinhole",
+                "--width",
+                "100",
+                "--height",
+                "80",
+                "--hfov",
+                "90",
+            ]
+        )
+        == 0
+    )
+    assert json.loads(pin.read_text())["fx"] == pytest.approx(50.0)  # tan(45 deg) = 1: f = W / 2
+
+
+def test_synth_writes_its_split_by_sequence_and_keeps_what_exists(tmp_path, capsys):
+    out = tmp_path / "data"
+    args = ["synth", str(out), "--sequences", "3", "--frames", "3", "--width", "128", "--height", "32"]
+    assert main([*args, "--workers", "1", "--split", "1,1,1"]) == 0
+    parts = {}
+    for part in ("train", "val", "test"):
+        lines = (out / "splits" / "default" / f"{part}.txt").read_text().splitlines()
+        parts[part] = {line.split()[0] for line in lines if line and not line.startswith("#")}
+    assert all(len(seqs) == 1 for seqs in parts.values())  # whole rides, one in each part
+    assert set.union(*parts.values()) == {"seq_000", "seq_001", "seq_002"}
+    capsys.readouterr()
+    before = (out / "seq_000" / "images" / "000000.png").stat().st_mtime_ns
+    assert main([*args, "--workers", "1"]) == 2  # the library refuses to replace a sequence
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "seq_000" in err and "overwrite" in err
+    assert (out / "seq_000" / "images" / "000000.png").stat().st_mtime_ns == before
+    assert main(["synth", str(tmp_path / "x"), "--frames", "2"]) == 2  # checked by generate_dataset
+    assert "frames" in capsys.readouterr().err and not (tmp_path / "x").exists()
+    with pytest.raises(SystemExit):
+        main([*args, "--split", "1,1"])
+
+
+def test_resume_takes_the_runs_saved_configuration(tmp_path, capsys):
+    """``train --out RUN --resume`` starts from RUN/config.yaml: data root, budget and the rest, unless a flag
+    or an override changes them; a preset or --config given explicitly replaces it."""
+    run = tmp_path / "run"
+    run.mkdir()
+    saved = apply_overrides(
+        preset("paper-synthia"),
+        ["data.root='rides'", "minutes=7", "max_steps=5", "batch_size=3", "data.width=256"],
+    )
+    save_config(saved, run / "config.yaml")
+    parser = build_parser()
+    cfg = train_config_from_args(
+        parser.parse_args(["train", "--out", str(run), "--resume", "--max-steps", "9"])
+    )
+    assert (cfg.preset, cfg.data.root, cfg.minutes, cfg.batch_size, cfg.data.width) == (
+        "paper-synthia", "rides", 7, 3, 256,
+    )  # fmt: skip
+    assert cfg.max_steps == 9 and cfg.loss == saved.loss
+    cfg = train_config_from_args(parser.parse_args(["train", "--out", str(run), "--resume", "minutes=null"]))
+    assert cfg.minutes is None and cfg.max_steps == 5
+    cfg = train_config_from_args(
+        parser.parse_args(["train", "--out", str(run), "--resume", "--preset", "improved"])
+    )
+    assert cfg.preset == "improved" and cfg.data.root == ""
+    # without --resume a run directory's old configuration is not used
+    assert main(["train", "--out", str(run)]) == 2
+    assert "no training data" in capsys.readouterr().err
+    # with --resume but nothing to resume: one line naming the missing checkpoint
+    assert main(["train", "--out", str(run), "--resume", "--device", "cpu"]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+
+
+def test_library_argument_errors_are_one_line(tmp_path, capsys):
+    """Invalid values the library checks (InputError) reach the user as one line, without a traceback."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--sequences", "3", "--test-sequences", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--sequences" in err and "Traceback" not in err
+    assert not out.exists()

@@ -1,9 +1,11 @@
-"""``cylsfm camera``: write the ``camera.json`` of a full panorama, or describe one."""
+"""``cylsfm camera``: write a ``camera.json`` (a full cylindrical or equirectangular panorama, or a centred
+pinhole camera), or describe one."""
 
 from __future__ import annotations
 
 import argparse
 
+from ..errors import InputError
 from .base import command
 
 
@@ -11,16 +13,28 @@ def _camera_args(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", required=True)
     show = sub.add_parser("show", help="describe a camera.json")
     show.add_argument("path", help="camera.json to read")
-    new = sub.add_parser("new", help="write the camera.json of a full 360-degree cylindrical panorama")
+    new = sub.add_parser(
+        "new",
+        help="write the camera.json of a full 360-degree panorama (cylindrical by default) or a pinhole camera",
+    )
     new.add_argument("path", help="camera.json to write")
-    new.add_argument("--width", type=int, required=True, help="panorama width in pixels")
-    new.add_argument("--height", type=int, required=True, help="panorama height in pixels")
+    new.add_argument("--width", type=int, required=True, help="image width in pixels")
+    new.add_argument("--height", type=int, required=True, help="image height in pixels")
+    new.add_argument(
+        "--model",
+        choices=["cylindrical", "equirectangular", "pinhole"],
+        default="cylindrical",
+        help="cylindrical (default) or equirectangular: the full 360-degree panorama of that size; "
+        "pinhole: a centred camera with square pixels and the horizontal field of view --hfov",
+    )
     new.add_argument(
         "--vfov-h",
         type=float,
         default=1.0,
-        help="rows span h in [-vfov_h, vfov_h] on the unit cylinder (1.0 = +-45 degrees of elevation)",
+        help="cylindrical: rows span h in [-vfov_h, vfov_h] on the unit cylinder (1.0 = +-45 degrees of "
+        "elevation)",
     )
+    new.add_argument("--hfov", type=float, help="pinhole: horizontal field of view in degrees")
 
 
 @command("camera", "write or describe a camera.json", _camera_args)
@@ -30,7 +44,7 @@ def run_camera(args: argparse.Namespace) -> int:
     from ..geometry import CylindricalCamera, load_camera
 
     if args.action == "new":
-        cam = CylindricalCamera.full(args.width, args.height, args.vfov_h)
+        cam = _new_camera(args)
         cam.to_json(args.path)
         print(f"wrote {args.path}")
     else:
@@ -45,3 +59,16 @@ def run_camera(args: argparse.Namespace) -> int:
             f"elevation {-math.degrees(math.atan(top)):.1f} to {-math.degrees(math.atan(bottom)):.1f} deg"
         )
     return 0
+
+
+def _new_camera(args: argparse.Namespace):
+    """The camera ``cylsfm camera new`` describes."""
+    from ..geometry import CylindricalCamera, EquirectangularCamera, PinholeCamera
+
+    if args.model == "equirectangular":
+        return EquirectangularCamera.full(args.width, args.height)
+    if args.model == "pinhole":
+        if args.hfov is None:
+            raise InputError("a pinhole camera needs its horizontal field of view: --hfov DEG")
+        return PinholeCamera.from_fov(args.width, args.height, args.hfov)
+    return CylindricalCamera.full(args.width, args.height, args.vfov_h)

@@ -33,6 +33,7 @@ __all__ = [
     "load_depth",
     "load_image",
     "load_mask",
+    "parse_numbers",
     "read_text",
     "read_tum",
     "resize_nearest",
@@ -62,16 +63,32 @@ def save_png(path: PathLike, image: np.ndarray, compress_level: int = 6) -> None
     atomic_write_bytes(path, buf.getvalue())
 
 
-def save_depth(path: PathLike, depth: np.ndarray) -> None:
-    """Write a depth map ``[H,W]`` (metres, >= 0, 0 = unknown) as a float32 ``.npy`` file, atomically."""
-    depth = np.asarray(depth)
+def _checked_depth(depth: np.ndarray, path: PathLike, error: type[Exception]) -> np.ndarray:
+    """``depth`` as float32 ``[H,W]`` after checking it is 2-D, finite and non-negative (``error`` if not)."""
     if depth.ndim != 2:
-        raise InputError(f"{path}: depth must be [H,W], got shape {depth.shape}")
+        raise error(f"{path}: depth must be a 2-D [H,W] array, got shape {depth.shape}")
     depth = depth.astype(np.float32, copy=False)
     if not np.isfinite(depth).all():
-        raise InputError(f"{path}: depth has non-finite values")
+        raise error(f"{path}: depth has non-finite values (NaN or inf)")
     if (depth < 0).any():
-        raise InputError(f"{path}: depth has negative values")
+        raise error(f"{path}: depth has negative values (use 0 for unknown)")
+    return depth
+
+
+def parse_numbers(parts: list[str], where: str, line: str) -> list[float]:
+    """Finite floats from text fields; :class:`DatasetError` naming ``where`` (a file, a file:line) if not."""
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise DatasetError(f"{where}: not a number in {line!r}") from None
+    if not all(math.isfinite(v) for v in values):
+        raise DatasetError(f"{where}: non-finite value in {line!r}")
+    return values
+
+
+def save_depth(path: PathLike, depth: np.ndarray) -> None:
+    """Write a depth map ``[H,W]`` (metres, >= 0, 0 = unknown) as a float32 ``.npy`` file, atomically."""
+    depth = _checked_depth(np.asarray(depth), path, InputError)
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(depth), allow_pickle=False)
     atomic_write_bytes(path, buf.getvalue())
@@ -134,12 +151,7 @@ def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
             raise DatasetError(
                 f"{path}:{lineno}: expected 8 values 't tx ty tz qx qy qz qw', got {len(parts)}"
             )
-        try:
-            values = [float(p) for p in parts]
-        except ValueError:
-            raise DatasetError(f"{path}:{lineno}: not a number in {line!r}") from None
-        if not all(math.isfinite(v) for v in values):
-            raise DatasetError(f"{path}:{lineno}: non-finite value in {line!r}")
+        values = parse_numbers(parts, f"{path}:{lineno}", line)
         if math.hypot(*values[4:]) < 1e-12:
             raise DatasetError(f"{path}:{lineno}: zero quaternion")
         rows.append(values)
@@ -201,14 +213,7 @@ def _check_depth_array(path: Path, arr: object) -> np.ndarray:
         raise DatasetError(f"{path}: depth file must hold one array, got {type(arr).__name__}")
     if arr.dtype.kind not in "fiu":
         raise DatasetError(f"{path}: depth must be numeric, got dtype {arr.dtype}")
-    if arr.ndim != 2:
-        raise DatasetError(f"{path}: depth must be a 2-D [H,W] array, got shape {arr.shape}")
-    depth = arr.astype(np.float32, copy=False)
-    if not np.isfinite(depth).all():
-        raise DatasetError(f"{path}: depth has non-finite values (NaN or inf)")
-    if (depth < 0).any():
-        raise DatasetError(f"{path}: depth has negative values (use 0 for unknown)")
-    return depth
+    return _checked_depth(arr, path, DatasetError)
 
 
 def load_depth(path: PathLike, size: tuple[int, int] | None = None) -> np.ndarray:

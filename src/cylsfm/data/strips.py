@@ -14,7 +14,6 @@ cylsfm format (:mod:`cylsfm.data.format`) is preferred for new data.
 
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ from torch.utils.data import Dataset
 from ..errors import InputError
 from ..geometry import Camera, CameraError
 from .augment import AugmentConfig, check_rollable
-from .io import DatasetError, image_size, load_image, read_text
+from .io import DatasetError, image_size, load_image, parse_numbers, read_text
 from .sample import build_sample, camera_class, check_size
 from .splits import check_snippet_args
 
@@ -42,12 +41,7 @@ def read_cam_txt(path: str | os.PathLike[str]) -> tuple[float, float, float, flo
         raise DatasetError(
             f"{path}: expected 9 comma-separated numbers 'fx,0,cx,0,fy,cy,0,0,1', got {len(parts)}"
         )
-    try:
-        v = [float(p) for p in parts]
-    except ValueError:
-        raise DatasetError(f"{path}: not a number in {text.strip()!r}") from None
-    if not all(math.isfinite(x) for x in v):
-        raise DatasetError(f"{path}: non-finite intrinsics")
+    v = parse_numbers(parts, str(path), text.strip())
     return v[0], v[2], v[4], v[5]
 
 

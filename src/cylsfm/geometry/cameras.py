@@ -59,6 +59,21 @@ def _bcast(p: Param, ref: Tensor) -> Param:
     return p
 
 
+def _azimuth(points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(theta, r, y)`` of points ``[B,3,H,W]``, each ``[B,H,W]``: the azimuth ``atan2(x, z)`` (radians), the
+    horizontal distance ``sqrt(x^2 + z^2)`` (at least a tiny epsilon) and the height ``y``.
+
+    Points on the vertical axis have no azimuth: they are nudged to ``(0, eps)`` so that the value and the
+    gradient stay finite (their image row is then far outside the image, and ``projectable`` flags them).
+    """
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    r2 = x * x + z * z
+    small = r2 < _EPS * _EPS
+    z = torch.where(small, torch.full_like(z, _EPS), z)
+    x = torch.where(small, torch.zeros_like(x), x)
+    return torch.atan2(x, z), torch.sqrt(torch.clamp(r2, min=_EPS * _EPS)), y
+
+
 @dataclass(frozen=True)
 class Camera:
     """Common part of all camera models: image size in pixels and the four intrinsics (pixels)."""
@@ -303,15 +318,7 @@ class CylindricalCamera(Camera):
 
     def project(self, points: Tensor) -> Tensor:
         check_shape(points, "B,3,H,W", "points")
-        x, y, z = points[:, 0], points[:, 1], points[:, 2]
-        r2 = x * x + z * z
-        # Points on the vertical axis have no azimuth: nudge them to (0, eps) so that the value and the
-        # gradient stay finite (their v is then far outside the image and they are flagged by projectable).
-        small = r2 < _EPS * _EPS
-        z = torch.where(small, torch.full_like(z, _EPS), z)
-        x = torch.where(small, torch.zeros_like(x), x)
-        r = torch.sqrt(torch.clamp(r2, min=_EPS * _EPS))
-        theta = torch.atan2(x, z)
+        theta, r, y = _azimuth(points)
         h = y / r
         u = _bcast(self.fx, theta) * theta + _bcast(self.cx, theta)
         v = _bcast(self.fy, h) * h + _bcast(self.cy, h)
@@ -442,13 +449,8 @@ class EquirectangularCamera(Camera):
 
     def project(self, points: Tensor) -> Tensor:
         check_shape(points, "B,3,H,W", "points")
-        x, y, z = points[:, 0], points[:, 1], points[:, 2]
-        r2 = x * x + z * z
-        small = r2 < _EPS * _EPS
-        z = torch.where(small, torch.full_like(z, _EPS), z)
-        x = torch.where(small, torch.zeros_like(x), x)
-        theta = torch.atan2(x, z)
-        phi = torch.atan2(y, torch.sqrt(torch.clamp(x * x + z * z, min=_EPS * _EPS)))
+        theta, r, y = _azimuth(points)
+        phi = torch.atan2(y, r)
         u = _bcast(self.fx, theta) * theta + _bcast(self.cx, theta)
         v = _bcast(self.fy, phi) * phi + _bcast(self.cy, phi)
         return torch.stack((u, v), 1)

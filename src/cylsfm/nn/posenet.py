@@ -88,14 +88,8 @@ class PoseExpNet(nn.Module):
 
         init_weights(self)
 
-    @staticmethod
-    def check_input_size(width: int, height: int, wrap: bool) -> None:
-        """Validate an image size (same rules as :meth:`cylsfm.nn.DispNet.check_input_size`).
-
-        Raises:
-            ValueError: if the size is not accepted (e.g. width not a multiple of 128 with wrap).
-        """
-        check_input_size(width, height, wrap)
+    #: Validate an input size (:func:`cylsfm.nn.layers.check_input_size`; raises ``InputError``).
+    check_input_size = staticmethod(check_input_size)
 
     def forward(
         self, target: torch.Tensor, sources: torch.Tensor

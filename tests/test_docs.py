@@ -166,7 +166,10 @@ def run_document(document: str, where: Path, capsys) -> tuple[int, list[str]]:
                 f"{document}: unknown command {argv[0]!r}; run it or add it to SKIPPED"
             )
             argv = with_added(argv)
-            status = main(argv[1:])
+            try:
+                status = main(argv[1:])
+            except SystemExit as exc:  # argparse: an unknown flag or a bad value
+                status = exc.code
             err = capsys.readouterr().err
             assert status == 0, f"{document}: `{' '.join(argv)}` exited with {status}: {err.strip()[-2000:]}"
             ran += 1

@@ -1,10 +1,13 @@
-"""``cylsfm evaluate depth|pose``: score a model (or another method's output) against ground truth."""
+"""``cylsfm evaluate depth|pose``: score a model (or another method's output) against ground truth.
+
+The options are passed on as they are: :func:`~cylsfm.evaluate.depth.evaluate_depth` and
+:func:`~cylsfm.evaluate.pose.evaluate_pose` check them (:class:`~cylsfm.errors.InputError`).
+"""
 
 from __future__ import annotations
 
 import argparse
 
-from ..errors import CylsfmError
 from .base import command
 
 
@@ -112,10 +115,6 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
     from ..atomic import atomic_write_bytes
 
-    if args.batch_size < 1:
-        raise CylsfmError(f"--batch-size must be at least 1, got {args.batch_size}")
-    if args.yaw_roll is not None and not args.checkpoint:
-        raise CylsfmError("--yaw-roll rolls the input of a model: it needs --checkpoint")
     source = None
     if args.checkpoint:
         from ..model import Predictor
@@ -133,10 +132,6 @@ def _depth(args: argparse.Namespace, source) -> dict:
     """Run ``evaluate depth``, print its table; returns the JSON report."""
     from ..evaluate.depth import depth_json, evaluate_depth, format_depth_table
 
-    if not 0 < args.min_depth < args.max_depth:
-        raise CylsfmError(f"need 0 < --min-depth < --max-depth, got {args.min_depth} and {args.max_depth}")
-    if not 0 <= args.seam_degrees <= 180:
-        raise CylsfmError(f"--seam-degrees must be in [0, 180], got {args.seam_degrees}")
     result = evaluate_depth(
         source if source is not None else args.predictions,
         args.data,
@@ -159,10 +154,6 @@ def _pose(args: argparse.Namespace, source) -> dict:
     """Run ``evaluate pose``, print its table; returns the JSON report."""
     from ..evaluate.pose import evaluate_pose, format_pose_table, pose_json
 
-    if args.snippet < 2:
-        raise CylsfmError(f"--snippet must be at least 2, got {args.snippet}")
-    if args.stride is not None and args.stride < 1:
-        raise CylsfmError(f"--stride must be at least 1, got {args.stride}")
     result = evaluate_pose(
         source if source is not None else args.trajectory,
         args.data,

@@ -15,7 +15,7 @@ import torch
 
 from ..data.convert import to_cylinder
 from ..data.format import save_depth, save_png
-from ..errors import CylsfmError
+from ..errors import InputError
 from ..export.colorize import colorize_depth, side_by_side
 from ..geometry import Camera, load_camera
 from ..model import Predictor
@@ -82,13 +82,14 @@ def predict(
         progress: show a progress bar on stderr.
 
     Raises:
+        InputError: ``batch_size`` below 1, ``fps`` not a positive number.
         CylsfmError: an input is missing, unreadable or corrupt, or its camera does not suit the model;
             the message names the file. Every input's cameras are checked before anything is written.
     """
     if batch_size < 1:
-        raise CylsfmError(f"--batch-size must be at least 1, got {batch_size}")
+        raise InputError(f"batch_size must be at least 1, got {batch_size}")
     if fps is not None and not (math.isfinite(fps) and fps > 0):
-        raise CylsfmError(f"--fps must be a positive number, got {fps}")
+        raise InputError(f"fps must be a positive number, got {fps}")
     sources = discover_inputs(inputs)
     cam, camera_path = _camera_arg(camera)
     predictor = (

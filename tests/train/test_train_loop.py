@@ -1,3 +1,5 @@
+import json
+import math
 import os
 import subprocess
 import sys
@@ -6,8 +8,9 @@ import pytest
 import torch
 
 from cylsfm.cli import main
-from cylsfm.model import CheckpointError, load_checkpoint, load_models, save_checkpoint
-from cylsfm.model.config import apply_overrides, preset
+from cylsfm.geometry import CylindricalCamera
+from cylsfm.model import CheckpointError, Predictor, load_checkpoint, load_models, save_checkpoint
+from cylsfm.model.config import apply_overrides, load_config, preset
 from cylsfm.train.trainer import NonFiniteLossError, Trainer, train
 
 
@@ -34,14 +37,59 @@ def _weights(run):
     }
 
 
+TERMS = ("photometric", "smooth", "explain", "total")
+
+
+def _metrics(run):
+    """The rows of ``RUN/metrics.jsonl``, checked: every loss term present and finite, total = sum of terms."""
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    for row in rows:
+        assert set(TERMS) | {"step", "translation_norm", "samples_per_s"} <= set(row), row
+        assert all(math.isfinite(row[k]) for k in (*TERMS, "translation_norm")), row
+        assert row["total"] == pytest.approx(row["photometric"] + row["smooth"] + row["explain"], rel=1e-6)
+    return rows
+
+
+def _tensorboard(run):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run / "tb"), size_guidance={"images": 0, "scalars": 0})
+    events.Reload()
+    return events
+
+
 def test_training_writes_config_logs_and_checkpoints(tiny_data, tmp_path):
     run = tmp_path / "run"
-    summary = train(_cfg(tiny_data, max_steps=3), run, progress=False)
-    assert summary["steps"] == 3
-    assert (run / "config.yaml").exists() and (run / "metrics.jsonl").exists()
-    assert any((run / "tb").iterdir())
+    cfg = _cfg(tiny_data, max_steps=3)
+    summary = train(cfg, run, progress=False)
+    assert summary["steps"] == 3 and summary["stopped"] == "max_steps"
+    # metrics: every step logged (log_every=1), every term finite; the default recipe's terms are live
+    rows = _metrics(run)
+    assert [r["step"] for r in rows] == [1, 2, 3]
+    assert all(r["photometric"] > 0 and r["smooth"] > 0 and r["explain"] == 0 for r in rows)
+    # TensorBoard holds the same losses, and the target picture (image_every=2) at the training size
+    events = _tensorboard(run)
+    logged = [(e.step, e.value) for e in events.Scalars("loss/total")]
+    assert logged == [(r["step"], pytest.approx(r["total"], rel=1e-6)) for r in rows]
+    [image] = events.Images("target")
+    assert (image.step, image.width, image.height) == (2, 128, 32)
+    # the saved configuration is the one trained, in config.yaml and in the checkpoint alike
     models = load_models(run)  # a run directory means its latest checkpoint
-    assert models.step == 3 and models.config.data.width == 128
+    assert models.step == 3
+    assert load_config(run / "config.yaml") == models.config
+    assert (models.config.data.width, models.config.data.height, models.config.max_steps) == (128, 32, 3)
+    assert models.config.loss == cfg.loss and models.config.data.vfov_h is not None
+    # the weights were trained: every parameter moved away from its (seeded) initialisation
+    fresh = Trainer(_cfg(tiny_data, max_steps=3), tmp_path / "fresh")
+    fresh.close()
+    initial = fresh.model.disp_net.state_dict() | {
+        "pose." + k: v for k, v in fresh.model.pose_net.state_dict().items()
+    }
+    trained = _weights(run)
+    assert initial.keys() == trained.keys()
+    assert all(not torch.equal(initial[k], trained[k]) for k in trained), [
+        k for k in trained if torch.equal(initial[k], trained[k])
+    ]
 
 
 def test_resume_continues_exactly(tiny_data, tmp_path):
@@ -108,22 +156,64 @@ def test_cli_train_and_bad_size(tiny_data, tmp_path, capsys):
         "--split",
         "all",
     ]
-    assert main([*args, "--max-steps", "2", "--workers", "0", "--no-progress", "batch_size=2"]) == 0
+    assert (
+        main([*args, "--max-steps", "2", "--workers", "0", "--no-progress", "batch_size=2", "log_every=1"])
+        == 0
+    )
+    assert [r["step"] for r in _metrics(tmp_path / "r")] == [1, 2]
+    models = load_models(tmp_path / "r")
+    cfg = models.config
+    assert models.step == 2 and (cfg.data.width, cfg.data.height, cfg.batch_size) == (128, 32, 2)
+    assert cfg.data.split is None and cfg.data.root == str(tiny_data)
     assert main(["train", "--data", str(tiny_data), "--out", str(tmp_path / "r2"), "--size", "120x32"]) == 2
     assert "multiple of 128" in capsys.readouterr().err
     assert main(["train", "--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "r3")]) == 2
 
 
-def test_fov_crop_and_equivariant_head_train(tiny_data, tmp_path):
-    run = train(
-        _cfg(tiny_data, max_steps=1, **{"data.fov": 180, "data.width": 256}),
-        tmp_path / "crop",
-        progress=False,
-    )
-    assert run["steps"] == 1
-    assert load_models(tmp_path / "crop").config.wrap is False
-    eq = _cfg(tiny_data, max_steps=1, **{"model.pose_head": "equivariant", "data.roll": "true"})
-    assert train(eq, tmp_path / "eq", progress=False)["steps"] == 1
+def test_fov_crop_trains_on_the_cropped_width(tiny_data, tmp_path):
+    """``--fov 180`` of 256-pixel panoramas: the networks see the centred 128 columns, without wrap-around."""
+    run = tmp_path / "crop"
+    args = ["train", "--data", str(tiny_data), "--out", str(run), "--size", "256x32", "--fov", "180"]
+    args += ["--split", "all", "--max-steps", "1", "--workers", "0", "--no-progress", "batch_size=2"]
+    assert main([*args, "image_every=1"]) == 0
+    [row] = _metrics(run)
+    assert row["step"] == 1
+    [image] = _tensorboard(run).Images("target")  # what the networks were given
+    assert (image.width, image.height) == (128, 32)
+    models = load_models(run)
+    cfg = models.config
+    assert (cfg.data.fov, cfg.data.width, cfg.wrap) == (180, 256, False)
+    assert models.disp_net.wrap is False and models.pose_net.wrap is False
+    # a 256-pixel panorama given to the trained model is cropped to those 128 columns
+    predictor = Predictor(models)
+    camera = CylindricalCamera.full(256, 32)
+    assert predictor.window(camera) == (64, 192)
+    assert predictor.network_camera(camera).width == 128
+    images = torch.rand(1, 3, 32, 256)
+    assert predictor.disparity(images, camera).shape == (1, 1, 32, 128)
+    assert predictor.depth(images, camera).shape == (1, 1, 32, 128)
+
+
+def test_equivariant_head_is_trained_and_restored(tiny_data, tmp_path):
+    """The yaw-equivariant pose head with roll augmentation: the restored network turns its output with a roll
+    of the panoramas (the averaging head would be invariant to it)."""
+    run = tmp_path / "eq"
+    extra = {"model.pose_head": "equivariant", "data.roll": "true", "data.width": 256}
+    assert train(_cfg(tiny_data, max_steps=1, **extra), run, progress=False)["steps"] == 1
+    [row] = _metrics(run)
+    assert row["step"] == 1 and row["translation_norm"] > 0
+    models = load_models(run)
+    assert models.config.model.pose_head == "equivariant" and models.config.data.roll is True
+    assert models.pose_net.pose_head == "equivariant"
+    gen = torch.Generator().manual_seed(0)
+    target, sources = torch.rand(1, 3, 32, 256, generator=gen), torch.rand(1, 2, 3, 32, 256, generator=gen)
+    with torch.no_grad():
+        pose, _ = models.pose_net(target, sources)
+        rolled, _ = models.pose_net(target.roll(128, -1), sources.roll(128, -1))
+    # half a turn of yaw: x and z of the translation and of the rotation vector change sign
+    flip = torch.tensor([-1.0, 1.0, -1.0, -1.0, 1.0, -1.0])
+    torch.testing.assert_close(rolled, pose * flip, rtol=1e-4, atol=1e-7)
+    assert (pose[..., [0, 2, 3, 5]].abs() > 1e-6).all()  # not trivially zero
 
 
 def test_data_parallel_with_two_cpu_processes(tiny_data, tmp_path):
@@ -133,12 +223,13 @@ def test_data_parallel_with_two_cpu_processes(tiny_data, tmp_path):
         sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29571",
         "-m", "cylsfm.cli", "train", "--data", str(tiny_data), "--out", str(run), "--size", "128x32",
         "--split", "all", "--max-steps", "2", "--workers", "0", "--no-progress", "--device", "cpu",
-        "batch_size=2", "latest_every=1",
+        "batch_size=2", "latest_every=1", "log_every=1",
     ]  # fmt: skip
     env = dict(os.environ, OMP_NUM_THREADS="1")
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 0, out.stderr[-3000:]
     assert load_checkpoint(run)["step"] == 2
+    assert [r["step"] for r in _metrics(run)] == [1, 2]  # logged once, by rank 0
 
 
 def test_plain_photometric_warm_up_is_used_by_the_trainer(tiny_data, tmp_path):

@@ -1,4 +1,4 @@
-"""`cylsfm train --data` on a dataset prepared for the original SfMLearner code (image strips)."""
+"""Training on SfMLearner strip datasets, and what a resumed run takes from the command line."""
 
 import json
 import math
@@ -38,3 +38,28 @@ def test_train_reads_sfmlearner_strips(tmp_path):
     assert all(math.isfinite(r["total"]) and r["total"] > 0 for r in rows)
     models = load_models(run)
     assert models.step == 2 and models.config.data.root == str(data)
+
+
+def test_resume_keeps_the_run_and_warns_about_ignored_settings(tmp_path):
+    """A resumed run takes a new budget and data root, keeps everything else and says what it ignored."""
+    import pytest
+
+    from cylsfm.model.config import apply_overrides, preset
+    from cylsfm.train.trainer import train
+
+    data, run = tmp_path / "strips", tmp_path / "run"
+    _write_strips(data)
+    base = [f"data.root='{data}'", f"data.width={W}", f"data.height={H}", "data.workers=0", "batch_size=2"]
+    train(apply_overrides(preset("default"), [*base, "max_steps=1"]), run, progress=False)
+    moved = tmp_path / "moved"
+    data.rename(moved)
+    asked = apply_overrides(
+        preset("default"),
+        [*base, f"data.root='{moved}'", "max_steps=2", "loss.ssim_weight=0.5", "batch_size=3"],
+    )
+    with pytest.warns(UserWarning, match=r"ignored: .*loss.ssim_weight.*batch_size|batch_size.*ssim"):
+        summary = train(asked, run, resume=True, progress=False)
+    assert summary["steps"] == 2
+    cfg = load_models(run).config
+    assert cfg.data.root == str(moved) and cfg.loss.ssim_weight == preset("default").loss.ssim_weight
+    assert cfg.batch_size == 2

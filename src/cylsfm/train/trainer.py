@@ -76,11 +76,7 @@ class Trainer:
             if not ckpt.exists():
                 raise CylsfmError(f"{ckpt}: nothing to resume (no checkpoint in {self.run_dir})")
             state = load_checkpoint(ckpt, map_location="cpu")
-            saved = config_from_dict(state["config"], where=f"{ckpt} (config)")
-            # A resumed run keeps its configuration; only the budget and the hardware may change.
-            saved.max_steps, saved.minutes = cfg.max_steps, cfg.minutes
-            saved.device, saved.data.workers = cfg.device, cfg.data.workers
-            cfg = saved
+            cfg = _resumed_config(config_from_dict(state["config"], where=f"{ckpt} (config)"), cfg)
         self.cfg = cfg
         self.step = 0
         self._check_size()
@@ -430,6 +426,54 @@ def train(
         return trainer.fit(progress=progress)
     finally:
         trainer.close()
+
+
+#: Settings a resumed run may change: the budget, the hardware, where the data is, and how often it logs.
+#: Everything else would make the resumed run a different run; it keeps its saved value.
+RESUMABLE_KEYS = (
+    "max_steps",
+    "minutes",
+    "device",
+    "data.workers",
+    "data.root",
+    "log_every",
+    "image_every",
+    "checkpoint_every",
+    "latest_every",
+)
+
+
+def _resumed_config(saved: TrainConfig, asked: TrainConfig) -> TrainConfig:
+    """The configuration of a resumed run: ``saved`` with the :data:`RESUMABLE_KEYS` of ``asked``; a
+    warning names every other setting of ``asked`` that differs and is ignored."""
+    saved_d, asked_d = _flatten(config_to_dict(saved)), _flatten(config_to_dict(asked))
+    ignored = [
+        f"{k} (kept {saved_d.get(k)!r}, asked {v!r})"
+        for k, v in asked_d.items()
+        if k not in RESUMABLE_KEYS and v != saved_d.get(k) and k != "data.vfov_h"
+    ]
+    if ignored:
+        warnings.warn(
+            "a resumed run keeps its configuration; ignored: " + ", ".join(ignored), UserWarning, stacklevel=3
+        )
+    data = config_to_dict(saved)
+    for key in RESUMABLE_KEYS:
+        *sections, name = key.split(".")
+        node = data
+        for section in sections:
+            node = node[section]
+        node[name] = asked_d[key]
+    return config_from_dict(data, where="resumed configuration")
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 def _is_strip_root(root: Path) -> bool:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import make_pose
+from cylsfm.data.synth.room import make_pose
 from cylsfm.geometry import CylindricalCamera, relative_pose, resize_image
 from cylsfm.losses import (
     LossConfig,

@@ -3,8 +3,8 @@ import math
 import pytest
 import torch
 
-from conftest import make_pose
 from cylsfm import CylindricalCamera, PinholeCamera, inverse_warp
+from cylsfm.data.synth.room import make_pose
 from cylsfm.geometry import relative_pose, sample_image
 
 

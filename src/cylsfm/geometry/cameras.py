@@ -103,14 +103,33 @@ class Camera:
             if not finite:
                 raise CameraError(f"{name} must be finite, got {value}")
 
+    # ------------------------------------------------------------------ the intrinsics' linear map
+    def _to_pixels(self, a: Tensor, b: Tensor) -> Tensor:
+        """``(u, v) = (fx a + cx, fy b + cy)`` for the model's angles or slopes ``a, b [B,...]`` -> ``[B,2,...]``."""
+        return torch.stack(
+            (_bcast(self.fx, a) * a + _bcast(self.cx, a), _bcast(self.fy, b) * b + _bcast(self.cy, b)), 1
+        )
+
+    def _from_pixels(self, uv: Tensor) -> tuple[Tensor, Tensor]:
+        """The inverse of :meth:`_to_pixels`: ``uv [B,2,...]`` -> ``(a, b)``, each ``[B,...]``."""
+        u, v = uv[:, 0], uv[:, 1]
+        return (u - _bcast(self.cx, u)) / _bcast(self.fx, u), (v - _bcast(self.cy, v)) / _bcast(self.fy, v)
+
     # ------------------------------------------------------------------ geometry (per subclass)
     def project(self, points: Tensor) -> Tensor:
         """Project camera-frame points ``[B,3,H,W]`` (metres) to pixel coordinates ``[B,2,H,W]`` (u, v)."""
         raise NotImplementedError
 
     def unproject(self, depth: Tensor) -> Tensor:
-        """Lift a depth map ``[B,1,H,W]`` (metres, this model's depth) to camera points ``[B,3,H,W]``."""
-        raise NotImplementedError
+        """Lift a depth map ``[B,1,H,W]`` (metres, this model's depth) to camera points ``[B,3,H,W]``.
+
+        Every model's rays are scaled so that multiplying by its own depth gives the point.
+        """
+        check_shape(depth, "B,1,H,W", "depth")
+        b, _, hgt, wid = depth.shape
+        if (wid, hgt) != self.size:
+            raise ShapeError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
+        return self.rays(self.pixel_grid(b, depth.device, depth.dtype)) * depth
 
     def depth_of(self, points: Tensor) -> Tensor:
         """This model's depth of camera-frame points ``[B,3,...]`` -> ``[B,1,...]`` (metres)."""
@@ -319,15 +338,10 @@ class CylindricalCamera(Camera):
     def project(self, points: Tensor) -> Tensor:
         check_shape(points, "B,3,H,W", "points")
         theta, r, y = _azimuth(points)
-        h = y / r
-        u = _bcast(self.fx, theta) * theta + _bcast(self.cx, theta)
-        v = _bcast(self.fy, h) * h + _bcast(self.cy, h)
-        return torch.stack((u, v), 1)
+        return self._to_pixels(theta, y / r)
 
     def rays(self, uv: Tensor) -> Tensor:
-        u, v = uv[:, 0], uv[:, 1]
-        theta = (u - _bcast(self.cx, u)) / _bcast(self.fx, u)
-        h = (v - _bcast(self.cy, v)) / _bcast(self.fy, v)
+        theta, h = self._from_pixels(uv)
         return torch.stack((torch.sin(theta), h, torch.cos(theta)), 1)
 
     def unproject(self, depth: Tensor) -> Tensor:
@@ -340,12 +354,7 @@ class CylindricalCamera(Camera):
         >>> torch.allclose(cam.depth_of(points), torch.tensor(2.0))
         True
         """
-        check_shape(depth, "B,1,H,W", "depth")
-        b, _, hgt, wid = depth.shape
-        if (wid, hgt) != self.size:
-            raise ShapeError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
-        grid = self.pixel_grid(b, depth.device, depth.dtype)
-        return self.rays(grid) * depth
+        return super().unproject(depth)
 
     def depth_of(self, points: Tensor) -> Tensor:
         return torch.sqrt(points[:, 0:1] ** 2 + points[:, 2:3] ** 2)
@@ -394,23 +403,11 @@ class PinholeCamera(Camera):
         check_shape(points, "B,3,H,W", "points")
         x, y, z = points[:, 0], points[:, 1], points[:, 2]
         z = torch.where(z.abs() < _EPS, torch.full_like(z, _EPS), z)
-        u = _bcast(self.fx, x) * (x / z) + _bcast(self.cx, x)
-        v = _bcast(self.fy, y) * (y / z) + _bcast(self.cy, y)
-        return torch.stack((u, v), 1)
+        return self._to_pixels(x / z, y / z)
 
     def rays(self, uv: Tensor) -> Tensor:
-        u, v = uv[:, 0], uv[:, 1]
-        x = (u - _bcast(self.cx, u)) / _bcast(self.fx, u)
-        y = (v - _bcast(self.cy, v)) / _bcast(self.fy, v)
+        x, y = self._from_pixels(uv)
         return torch.stack((x, y, torch.ones_like(x)), 1)
-
-    def unproject(self, depth: Tensor) -> Tensor:
-        check_shape(depth, "B,1,H,W", "depth")
-        b, _, hgt, wid = depth.shape
-        if (wid, hgt) != self.size:
-            raise ShapeError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
-        grid = self.pixel_grid(b, depth.device, depth.dtype)
-        return self.rays(grid) * depth
 
     def depth_of(self, points: Tensor) -> Tensor:
         return points[:, 2:3]
@@ -450,25 +447,13 @@ class EquirectangularCamera(Camera):
     def project(self, points: Tensor) -> Tensor:
         check_shape(points, "B,3,H,W", "points")
         theta, r, y = _azimuth(points)
-        phi = torch.atan2(y, r)
-        u = _bcast(self.fx, theta) * theta + _bcast(self.cx, theta)
-        v = _bcast(self.fy, phi) * phi + _bcast(self.cy, phi)
-        return torch.stack((u, v), 1)
+        return self._to_pixels(theta, torch.atan2(y, r))
 
     def rays(self, uv: Tensor) -> Tensor:
         """Unit-range directions (``|ray| = 1``) for pixel coordinates ``uv [B,2,...]``."""
-        u, v = uv[:, 0], uv[:, 1]
-        theta = (u - _bcast(self.cx, u)) / _bcast(self.fx, u)
-        phi = (v - _bcast(self.cy, v)) / _bcast(self.fy, v)
+        theta, phi = self._from_pixels(uv)
         c = torch.cos(phi)
         return torch.stack((c * torch.sin(theta), torch.sin(phi), c * torch.cos(theta)), 1)
-
-    def unproject(self, depth: Tensor) -> Tensor:
-        check_shape(depth, "B,1,H,W", "depth")
-        b, _, hgt, wid = depth.shape
-        if (wid, hgt) != self.size:
-            raise ShapeError(f"depth is {wid}x{hgt} but the camera is {self.width}x{self.height}")
-        return self.rays(self.pixel_grid(b, depth.device, depth.dtype)) * depth
 
     def depth_of(self, points: Tensor) -> Tensor:
         return torch.linalg.vector_norm(points[:, 0:3], dim=1, keepdim=True)

@@ -92,6 +92,15 @@ def main() -> None:
     parser.add_argument("--passes", type=int, default=5)
     parser.add_argument("--workers", type=int, nargs="+", default=[0, 1, 2, 4])
     parser.add_argument("--sizes", nargs="+", default=["512x128", "256x64"], help="loader output sizes")
+    parser.add_argument(
+        "--modes",
+        nargs="+",
+        default=["decode", "decode-no-gt", "cache-no-gt"],
+        choices=["decode", "decode-no-gt", "cache-no-gt"],
+        help="decode: every frame decoded per sample, with ground truth (the evaluation's loader); "
+        "decode-no-gt: without depth and poses (what training needs); cache-no-gt: frames decoded once "
+        "(the trainer's default)",
+    )
     args = parser.parse_args()
     # more workers than cores is measured on purpose
     warnings.filterwarnings("ignore", message="This DataLoader will create")
@@ -112,16 +121,21 @@ def main() -> None:
         )
         print(f"loader: batch {args.batch}, shuffled, AugmentConfig() (mirror + colour jitter), seq_length 3")
         print(f"median of {args.passes} passes after a warm-up pass\n")
-        print("| output size | workers | samples/s | ms/sample |")
-        print("|---|---|---|---|")
+        print("| output size | frames | workers | samples/s | ms/sample |")
+        print("|---|---|---|---|---|")
         for spec in args.sizes:
             w, h = (int(v) for v in spec.split("x"))
-            ds = SequenceDataset(
-                root, size=None if (w, h) == (width, height) else (w, h), augment=AugmentConfig()
-            )
-            for workers in args.workers:
-                rate = measure(ds, workers, args.batch, args.passes)
-                print(f"| {w}x{h} | {workers} | {rate:.0f} | {1000 / rate:.2f} |", flush=True)
+            for mode in args.modes:
+                ds = SequenceDataset(
+                    root,
+                    size=None if (w, h) == (width, height) else (w, h),
+                    augment=AugmentConfig(),
+                    load_ground_truth=mode == "decode",
+                    cache=mode == "cache-no-gt",
+                )
+                for workers in args.workers:
+                    rate = measure(ds, workers, args.batch, args.passes)
+                    print(f"| {w}x{h} | {mode} | {workers} | {rate:.0f} | {1000 / rate:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -128,7 +128,7 @@ def _train(data: Path, run: Path, width: int, height: int, minutes: float, seed:
     cfg = apply_overrides(
         preset("default"),
         [f"data.root='{data}'", f"data.width={width}", f"data.height={height}", f"minutes={minutes}",
-         "data.workers=1", f"seed={seed}", "max_steps=1000000", "checkpoint_every=0"],
+         f"seed={seed}", "max_steps=1000000", "checkpoint_every=0"],
     )  # fmt: skip
     summary = train(cfg, run, resume=(run / "checkpoints" / "latest.pt").exists(), progress=progress)
     return cfg, summary

@@ -214,6 +214,38 @@ def test_skip_bad_at_load_time_replaces_the_sample(tmp_path):
     assert len(list(DataLoader(ds, batch_size=2))) == 3
 
 
+@pytest.mark.parametrize("resize", [None, (32, 8)])
+def test_frame_cache_gives_the_same_samples(tmp_path, resize):
+    """Frames decoded once (cache) give bit-identical samples, augmented ones included, to decoding each
+    time; a frame that fails to decode still fails where it is used, naming the file."""
+    write_seq(tmp_path / "a", n=6, poses=True, mask=True, seed=1)
+    write_seq(tmp_path / "b", n=5, seed=2)
+    aug = AugmentConfig(roll=True, reverse=True)
+    plain = SequenceDataset(tmp_path, size=resize, augment=aug)
+    cached = SequenceDataset(tmp_path, size=resize, augment=aug, cache=True)
+    assert plain.frame_cache is None and cached.frame_cache is not None
+    assert len(cached.frame_cache.frames) == 11  # every frame once
+    for i in range(len(plain)):
+        torch.manual_seed(i)
+        a = plain[i]
+        torch.manual_seed(i)
+        b = cached[i]
+        assert a.keys() == b.keys()
+        for k in a:
+            if isinstance(a[k], torch.Tensor):
+                assert torch.equal(a[k], b[k]), k
+            else:
+                assert a[k] == b[k], k
+    assert SequenceDataset(tmp_path, cache="auto").frame_cache is not None  # a few KiB always fit
+    img = tmp_path / "b" / "images" / "000003.png"
+    img.write_bytes(img.read_bytes()[:200])
+    broken = SequenceDataset(tmp_path, cache=True)  # decoding errors wait for the sample that uses them
+    with pytest.raises(DatasetError, match=r"000003\.png"):
+        broken[len(broken) - 1]
+    with pytest.raises(InputError, match="cache"):
+        SequenceDataset(tmp_path, cache="always")
+
+
 # ----------------------------------------------------------------------------------------- static frames
 def test_static_frames_removed_by_poses(tmp_path):
     xs = [0.0, 0.0, 0.1, 0.1, 0.2, 0.21, 0.3, 0.4]

@@ -16,8 +16,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from ..errors import InputError
 from ..geometry import Camera, relative_pose
 from .augment import AugmentConfig, check_rollable
+from .cache import FrameCache, available_memory_bytes
 from .format import (
     DatasetError,
     DatasetWarning,
@@ -82,6 +84,9 @@ class SequenceDataset(Dataset):
             contains them) and replace a sample whose frame fails to decode at load time by the next
             loadable one (warned about, deterministic) instead of raising :class:`DatasetError`.
         load_ground_truth: include ``"depth"`` and ``"pose_gt"`` when available.
+        cache: decode every frame of the samples once, up front, and keep it in memory as ``uint8``
+            (:class:`~cylsfm.data.cache.FrameCache`); samples are then the same as without it, faster.
+            ``"auto"``: only when the frames take at most a quarter of the memory still available.
 
     Raises:
         DatasetError: naming the file, for any invalid input (see :func:`scan_dataset`); at load time for a
@@ -102,6 +107,7 @@ class SequenceDataset(Dataset):
         static: StaticFilter | None = None,
         skip_bad: bool = False,
         load_ground_truth: bool = True,
+        cache: bool | str = False,
     ) -> None:
         check_snippet_args(seq_length, stride)
         self.root = Path(root)
@@ -140,6 +146,7 @@ class SequenceDataset(Dataset):
         self._bad_frames: set[tuple[int, int]] = set()
         self._bad_targets: set[tuple[int, int]] = set()
         self._mask_cache: dict[int, np.ndarray] = {}
+        self.frame_cache = self._decode_all() if len(table) and self._should_cache(cache) else None
 
     # ------------------------------------------------------------------ building
     def _resized_cameras(self) -> list[Camera]:
@@ -211,6 +218,32 @@ class SequenceDataset(Dataset):
         idx = np.asarray(chosen, dtype=np.int64)
         return (table[idx] if len(idx) else table[:0]), seq_arr[idx]
 
+    def _frame_keys(self) -> list[tuple[int, int]]:
+        """``(sequence, frame)`` of every frame some snippet uses, each once."""
+        pairs = zip(self._seq_idx.tolist(), self._snippets.tolist(), strict=True)
+        return sorted({(s, f) for s, row in pairs for f in row})
+
+    def _should_cache(self, cache: bool | str) -> bool:
+        if cache not in (True, False, "auto"):
+            raise InputError(f"cache must be True, False or 'auto', got {cache!r}")
+        if cache != "auto":
+            return bool(cache)
+        camera = self.cameras[int(self._seq_idx[0])]
+        need = FrameCache.nbytes(len(self._frame_keys()), (camera.height, camera.width))
+        free = available_memory_bytes()
+        return free is None or need <= free // 4
+
+    def _decode_all(self) -> FrameCache:
+        """Every frame of the snippets, decoded once at the dataset's size."""
+        keys = self._frame_keys()
+        camera = self.cameras[keys[0][0]]
+        return FrameCache(keys, (camera.height, camera.width), self._decode)
+
+    def _decode(self, s: int, f: int) -> np.ndarray:
+        """Frame ``f`` of sequence ``s`` as ``uint8 [H,W,3]`` at the dataset's size."""
+        seq, camera = self.sequences[s], self.cameras[s]
+        return load_image(seq.images[f], camera.size if camera.size != seq.camera.size else None)
+
     # ------------------------------------------------------------------ access
     def __len__(self) -> int:
         return int(self._snippets.shape[0])
@@ -266,7 +299,7 @@ class SequenceDataset(Dataset):
         images = []
         for f in frames.tolist():
             try:
-                images.append(load_image(seq.images[f], size))
+                images.append(self.frame_cache.get(s, f) if self.frame_cache else self._decode(s, f))
             except DatasetError:
                 self._bad_frames.add((s, f))
                 raise

@@ -56,7 +56,8 @@ class DataConfig:
     min_translation: float = 0.05
     min_image_diff: float = 0.01
     mask: str | None = None  # image of pixels to use (white), e.g. the helmet excluded
-    workers: int = 2
+    workers: int | None = None  # loader processes; None: 0 on the CPU with cached frames, else 2
+    cache: bool | str = "auto"  # frames decoded once and kept in memory (auto: when they fit easily)
     vfov_h: float | None = None  # recorded when training starts: rows span h in [-vfov_h, vfov_h]
 
 

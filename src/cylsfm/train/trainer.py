@@ -144,6 +144,8 @@ class Trainer:
             size=(d.width, d.height),
             augment=augment,
             static=StaticFilter(d.static_filter, d.min_translation, d.min_image_diff),
+            load_ground_truth=False,  # self-supervised: depth and poses are never read
+            cache=d.cache,
         )
 
     def _check_size(self) -> None:
@@ -179,6 +181,9 @@ class Trainer:
             len(self.dataset), seed=self.cfg.seed, rank=self.dist.rank, world=self.dist.world, start=consumed
         )
         workers = self.cfg.data.workers
+        if workers is None:  # auto: frames decoded once cost the step ~1% on the main process (CPU)
+            cached = getattr(self.dataset, "frame_cache", None) is not None
+            workers = 0 if cached and self.device.type == "cpu" else 2
         return torch.utils.data.DataLoader(
             SeededDataset(self.dataset),
             batch_size=self.cfg.batch_size,

@@ -19,6 +19,8 @@ operations are the ordinary ones of a bounded image. All tensors are ``[..., H, 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TypeVar
 
 import numpy as np
@@ -40,6 +42,7 @@ __all__ = [
     "roll_angle",
     "roll_columns",
     "roll_pose",
+    "standard_ops",
 ]
 
 
@@ -86,6 +89,28 @@ class _CircularPadWidth(torch.autograd.Function):
         return gx, None, None
 
 
+_STANDARD_OPS = False
+
+
+@contextmanager
+def standard_ops() -> Iterator[None]:
+    """Within this block the padding functions use only standard tensor operations (slicing, ``cat``,
+    ``relu``) instead of their fused autograd functions: the same values, in a form that exporters
+    (ONNX, ``torch.export``) and compilers can trace. Used for inference exports; training keeps the
+    fused forms, whose backward passes are leaner.
+    """
+    global _STANDARD_OPS
+    previous, _STANDARD_OPS = _STANDARD_OPS, True
+    try:
+        yield
+    finally:
+        _STANDARD_OPS = previous
+
+
+def _plain() -> bool:
+    return _STANDARD_OPS or torch.compiler.is_compiling()
+
+
 def circular_pad(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
     """Pad the last (width) dimension of ``x`` circularly by ``left`` / ``right`` columns.
 
@@ -104,6 +129,8 @@ def circular_pad(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
     if left == 0 and right == 0:
         return x
     if left <= w and right <= w:
+        if _plain():
+            return torch.cat([x[..., w - left :], x, x[..., :right]], dim=-1)
         return _CircularPadWidth.apply(x, left, right)
     # Very narrow feature maps (e.g. width 1 at the deepest level): tile then slice.
     n_left = math.ceil(left / w)
@@ -198,6 +225,10 @@ def pad_cat(
     if not 0 <= pad <= width:
         raise InputError(f"pad_cat: padding {pad} must be in [0, width={width}]")
     fmt = memory_format if memory_format is not None else memory_format_of(parts[0])
+    if _plain():
+        return circular_pad(
+            torch.cat([p[..., s : s + width] for p, s in zip(parts, starts_t, strict=True)], 1), pad, pad
+        )
     return _PadCat.apply(pad, int(width), starts_t, fmt, *parts)
 
 
@@ -254,7 +285,7 @@ def relu_pad(y: torch.Tensor, pad: int, window: tuple[int, int, int] | None = No
         (zero outside the window).
     """
     height, start, width = window if window is not None else (y.shape[-2], 0, y.shape[-1])
-    if pad > width:  # tiny feature maps: wrap around more than once
+    if pad > width or _plain():  # tiny feature maps wrap around more than once
         return circular_pad(torch.relu(y[..., :height, start : start + width]), pad, pad)
     return _ReLUPad.apply(y, int(pad), int(height), int(start), int(width))
 

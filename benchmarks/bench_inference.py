@@ -1,0 +1,91 @@
+"""One panorama's depth: the wrap-aware DispNet in PyTorch and in ONNX Runtime, against the same network in
+SfMLearner's own configuration (pinhole: no wrap, fp32, contiguous memory, eager PyTorch), in one run.
+
+    python benchmarks/bench_inference.py                    # 512x128, batch 1
+    python benchmarks/bench_inference.py --size 256x64 --batch 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def _median_ms(fn, reps: int, warmup: int = 3) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times)
+
+
+def main(argv: list[str] | None = None) -> None:
+    from cylsfm.export.onnx import DepthOutput, onnx_session
+    from cylsfm.geometry.seam import standard_ops
+    from cylsfm.nn import DispNet
+
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--size", default="512x128")
+    parser.add_argument("--batch", type=int, default=1)
+    parser.add_argument("--reps", type=int, default=30)
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    args = parser.parse_args(argv)
+    w, h = (int(v) for v in args.size.lower().split("x"))
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    reference = DepthOutput(DispNet(wrap=False)).eval()
+    model = DepthOutput(DispNet(wrap=True)).eval()
+    model.load_state_dict(reference.state_dict())
+    x = torch.rand(args.batch, 3, h, w)
+    x_cl = x.contiguous(memory_format=torch.channels_last)
+    rows = []
+    with torch.inference_mode():
+        ref_ms = _median_ms(lambda: reference(x), args.reps)
+        rows.append(("SfMLearner configuration: pinhole, fp32, contiguous, eager", ref_ms))
+        rows.append(("cylsfm, PyTorch eager, contiguous", _median_ms(lambda: model(x), args.reps)))
+        model_cl = DepthOutput(DispNet(wrap=True)).eval().to(memory_format=torch.channels_last)
+        model_cl.load_state_dict(reference.state_dict())
+        rows.append(("cylsfm, PyTorch eager, channels_last", _median_ms(lambda: model_cl(x_cl), args.reps)))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "depth.onnx"
+        with standard_ops(), torch.no_grad():
+            program = torch.onnx.export(
+                model,
+                (x,),
+                dynamo=True,
+                input_names=["image"],
+                output_names=["depth"],
+                dynamic_shapes=({0: torch.export.Dim("batch", min=1, max=4096)},),
+            )
+        program.save(str(path))
+        session = onnx_session(path, threads=args.threads)
+        feed = {"image": x.numpy()}
+        rows.append(
+            ("cylsfm, ONNX Runtime (CPU)", _median_ms(lambda: session.run(["depth"], feed), args.reps))
+        )
+        with torch.no_grad():
+            diff = float(np.abs(session.run(["depth"], feed)[0] - model(x).numpy()).max())
+    print(
+        f"{w}x{h}, batch {args.batch}, {args.threads} threads, torch {torch.__version__}, median of {args.reps}"
+    )
+    print("| implementation | ms | ratio to the SfMLearner configuration |")
+    print("|---|---|---|")
+    for name, ms in rows:
+        print(f"| {name} | {ms:.1f} | {ms / ref_ms:.2f}x |")
+    print(f"ONNX Runtime against PyTorch: max |depth difference| {diff:.3g}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

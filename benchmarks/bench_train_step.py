@@ -65,6 +65,7 @@ def train_step_bench(
     channels_last: bool,
     cylindrical: bool = True,
     loss: str = "paper",
+    fused_adam: bool = True,
 ) -> dict:
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -80,7 +81,7 @@ def train_step_bench(
     disp_net = DispNet(wrap=cylindrical).to(memory_format=fmt)
     pose_net = PoseExpNet(n_sources=2, explainability=loss == "paper", wrap=cylindrical).to(memory_format=fmt)
     params = list(disp_net.parameters()) + list(pose_net.parameters())
-    opt = torch.optim.Adam(params, lr=2e-4, betas=(0.9, 0.999), fused=True)
+    opt = torch.optim.Adam(params, lr=2e-4, betas=(0.9, 0.999), fused=True if fused_adam else None)
     camera = (
         CylindricalCamera.full(width, height) if cylindrical else PinholeCamera.from_fov(width, height, 90)
     )
@@ -135,6 +136,7 @@ def train_step_bench(
         "loss": loss,
         "batch": batch,
         "channels_last": channels_last,
+        "fused_adam": fused_adam,
         "step_s": t_step,
         "samples_per_s": batch / t_step,
         "step_gflop": flops / 1e9,
@@ -181,8 +183,8 @@ def main(argv: list[str] | None = None) -> None:
             for cl in formats:
                 job = (w, h, args.batch, args.threads, args.steps, cl, True, args.loss)
                 rows.append(pool.apply(_run, (("step", job),)))
-            if not args.no_pinhole:
-                job = (w, h, args.batch, args.threads, args.steps, formats[0], False, args.loss)
+            if not args.no_pinhole:  # SfMLearner's own configuration: pinhole, contiguous, plain Adam
+                job = (w, h, args.batch, args.threads, args.steps, False, False, args.loss, False)
                 rows.append(pool.apply(_run, (("step", job),)))
         results["conv_after"] = pool.apply(_run, (("conv", (args.threads, 15)),))
     ceiling = max(results["conv"]["conv_fwd_gflops"], results["conv_after"]["conv_fwd_gflops"])
@@ -196,15 +198,19 @@ def main(argv: list[str] | None = None) -> None:
     )
     print(
         "| model | size | memory format | s/step | samples/s | GFLOP/step | GFLOP/s | of conv fwd | of conv f+b "
-        "| inference ms | inference GFLOP/s | peak RSS MiB |"
+        "| inference ms | inference GFLOP/s | peak RSS MiB | step / reference |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    reference = {r["size"]: r["step_s"] for r in rows if r["model"] == "pinhole"}
     for r in rows:
         fmt = "channels_last" if r["channels_last"] else "contiguous"
+        if r["model"] == "pinhole":
+            fmt += ", plain Adam (reference)"
+        ratio = f"{r['step_s'] / reference[r['size']]:.2f}x" if r["size"] in reference else "-"
         print(
             f"| {r['model']} | {r['size']} | {fmt} | {r['step_s']:.3f} | {r['samples_per_s']:.1f} | {r['step_gflop']:.1f} "
             f"| {r['step_gflops']:.0f} | {r['step_gflops'] / ceiling:.0%} | {r['step_gflops'] / fb_ceiling:.0%} "
-            f"| {r['infer_ms']:.1f} | {r['infer_gflops']:.0f} | {r['peak_rss_mib']:.0f} |"
+            f"| {r['infer_ms']:.1f} | {r['infer_gflops']:.0f} | {r['peak_rss_mib']:.0f} | {ratio} |"
         )
     if args.json:
         with open(args.json, "w") as fh:

@@ -10,7 +10,7 @@ import torch
 
 from .errors import CylsfmError
 
-__all__ = ["pick_device", "progress_bar"]
+__all__ = ["pick_device", "prefers_channels_last", "progress_bar"]
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -28,6 +28,17 @@ def pick_device(name: str = "auto") -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise CylsfmError(f"device {name!r} requested but CUDA is not available")
     return dev
+
+
+def prefers_channels_last(device: torch.device) -> bool:
+    """Whether training convolutions run faster in channels-last memory on ``device``.
+
+    Measured (BENCHMARKS.md, a 512x128 training step): on CUDA and on CPUs with AVX-512 channels-last is
+    faster (0.75 s against 0.86 s); on CPUs with AVX2 only it is slower (2.22 s against 1.64 s).
+    """
+    if device.type != "cpu":
+        return device.type == "cuda"
+    return torch.backends.cpu.get_cpu_capability().upper().startswith(("AVX512", "AMX"))
 
 
 def progress_bar(

@@ -38,7 +38,7 @@ from ..losses import image_pyramid, view_synthesis_loss
 from ..model.build import build_models
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.config import TrainConfig, config_from_dict, config_to_dict, save_config
-from ..runtime import progress_bar
+from ..runtime import prefers_channels_last, progress_bar
 from .distributed import init_distributed
 from .rng import restore_rng, rng_state
 from .sampler import ResumableSampler, SeededDataset
@@ -98,7 +98,10 @@ class Trainer:
         # ---- networks and optimiser
         disp_net, pose_net = build_models(cfg)
         self.model = SfMNet(disp_net, pose_net).to(self.device)
-        if cfg.channels_last:
+        self.channels_last = (
+            prefers_channels_last(self.device) if cfg.channels_last is None else bool(cfg.channels_last)
+        )
+        if self.channels_last:
             self.model = self.model.to(memory_format=torch.channels_last)
         fused = self.device.type in ("cuda", "cpu")
         self.optimizer = torch.optim.Adam(
@@ -210,7 +213,7 @@ class Trainer:
             cam = cam.crop(self.cfg.data.fov)
             tgt, src = tgt[..., x0:x1], src[..., x0:x1]
             mask = mask[..., x0:x1] if mask is not None else None
-        if self.cfg.channels_last:
+        if self.channels_last:
             tgt = tgt.contiguous(memory_format=torch.channels_last)
         return tgt, src, cam, mask
 

@@ -34,7 +34,8 @@ def prefers_channels_last(device: torch.device) -> bool:
     """Whether training convolutions run faster in channels-last memory on ``device``.
 
     Measured (BENCHMARKS.md, a 512x128 training step): on CUDA and on CPUs with AVX-512 channels-last is
-    faster (0.75 s against 0.86 s); on CPUs with AVX2 only it is slower (2.22 s against 1.64 s).
+    faster (0.75 s against 0.86 s); on CPUs with AVX2 only it is slower (2.22 s against 1.64 s; 1.27-1.64x
+    at 256x64).
     """
     if device.type != "cpu":
         return device.type == "cuda"

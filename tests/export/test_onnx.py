@@ -64,3 +64,22 @@ def test_export_of_a_missing_checkpoint_is_a_clear_error(tmp_path, capsys):
     )
     assert "nope.pt" in capsys.readouterr().err
     assert not (tmp_path / "x.onnx").exists()
+
+
+def test_export_of_a_crop_trained_model_takes_the_crop(tmp_path):
+    """A model trained on a 180-degree crop (no wrap-around) exports at the crop's width."""
+    from cylsfm.export.onnx import export_depth_onnx
+
+    cfg = apply_overrides(preset("default"), ["data.width=256", "data.height=64", "data.fov=180"])
+    disp, pose = build_models(cfg)
+    assert not cfg.wrap
+    ckpt = tmp_path / "crop.pt"
+    state = {
+        "config": config_to_dict(cfg),
+        "step": 0,
+        "disp_net": disp.state_dict(),
+        "pose_net": pose.state_dict(),
+    }
+    save_checkpoint(ckpt, state)
+    result = export_depth_onnx(ckpt, tmp_path / "crop.onnx")
+    assert result.size == (128, 64) and result.max_rel_diff < 1e-4

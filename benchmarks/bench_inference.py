@@ -8,30 +8,22 @@ SfMLearner's own configuration (pinhole: no wrap, fp32, contiguous memory, eager
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from bench_train_step import median_time  # the benchmarks' one timer (run from benchmarks/)
 
-def _median_ms(fn, reps: int, warmup: int = 3) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
+
+def _median_ms(fn, reps: int) -> float:
+    return 1e3 * median_time(fn, reps, warmup=3)
 
 
 def main(argv: list[str] | None = None) -> None:
-    from cylsfm.export.onnx import DepthOutput, onnx_session
-    from cylsfm.geometry.seam import standard_ops
+    from cylsfm.export.onnx import DepthOutput, export_onnx, onnx_session
     from cylsfm.nn import DispNet
 
     parser = argparse.ArgumentParser(
@@ -60,16 +52,7 @@ def main(argv: list[str] | None = None) -> None:
         rows.append(("cylsfm, PyTorch eager, channels_last", _median_ms(lambda: model_cl(x_cl), args.reps)))
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "depth.onnx"
-        with standard_ops(), torch.no_grad():
-            program = torch.onnx.export(
-                model,
-                (x,),
-                dynamo=True,
-                input_names=["image"],
-                output_names=["depth"],
-                dynamic_shapes=({0: torch.export.Dim("batch", min=1, max=4096)},),
-            )
-        program.save(str(path))
+        export_onnx(model, x, path)
         session = onnx_session(path, threads=args.threads)
         feed = {"image": x.numpy()}
         rows.append(

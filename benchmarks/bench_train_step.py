@@ -23,7 +23,7 @@ import time
 import torch
 
 
-def _median_time(fn, reps: int, warmup: int = 2) -> float:
+def median_time(fn, reps: int, warmup: int = 2) -> float:
     for _ in range(warmup):
         fn()
     times = []
@@ -45,14 +45,14 @@ def conv_reference(threads: int, reps: int) -> dict:
     x = torch.randn(4, 64, 64, 256).contiguous(memory_format=torch.channels_last)
     flops = 2 * 64 * 64 * 9 * x.shape[0] * x.shape[2] * x.shape[3]
     with torch.no_grad():
-        t_fwd = _median_time(lambda: conv(x), reps)
+        t_fwd = median_time(lambda: conv(x), reps)
     xg = x.clone().requires_grad_(True)
 
     def fwd_bwd() -> None:
         conv.zero_grad(set_to_none=True)
         conv(xg).sum().backward()
 
-    t_fb = _median_time(fwd_bwd, reps)
+    t_fb = median_time(fwd_bwd, reps)
     return {"conv_fwd_gflops": flops / t_fwd / 1e9, "conv_fwd_bwd_gflops": 3 * flops / t_fb / 1e9}
 
 
@@ -120,12 +120,12 @@ def train_step_bench(
     with counter:
         step()
     flops = counter.get_total_flops()
-    t_step = _median_time(step, reps, warmup=1)
+    t_step = median_time(step, reps, warmup=1)
 
     disp_net.eval()
     one = torch.rand(1, 3, height, width).contiguous(memory_format=fmt)
     with torch.inference_mode():
-        t_inf = _median_time(lambda: disp_net(one), max(reps, 10), warmup=2)
+        t_inf = median_time(lambda: disp_net(one), max(reps, 10), warmup=2)
         counter = FlopCounterMode(display=False)
         with counter:
             disp_net(one)

@@ -14,6 +14,20 @@ from cylsfm.nn import DispNet, PoseExpNet
 onnxruntime = pytest.importorskip("onnxruntime")
 
 
+def _checkpoint(path, *overrides):
+    """An untrained 256x64 model of the default recipe saved at ``path``; returns ``(path, config, DispNet)``."""
+    cfg = apply_overrides(preset("default"), ["data.width=256", "data.height=64", *overrides])
+    disp, pose = build_models(cfg)
+    state = {
+        "config": config_to_dict(cfg),
+        "step": 0,
+        "disp_net": disp.state_dict(),
+        "pose_net": pose.state_dict(),
+    }
+    save_checkpoint(path, state)
+    return path, cfg, disp
+
+
 def test_standard_ops_give_the_same_networks_outputs():
     """The plain-operator padding (what the exporter traces) computes what the fused padding computes."""
     torch.manual_seed(0)
@@ -30,17 +44,8 @@ def test_standard_ops_give_the_same_networks_outputs():
 
 
 def test_export_onnx_matches_pytorch_and_wraps(tmp_path, capsys):
-    cfg = apply_overrides(preset("default"), ["data.width=256", "data.height=64"])
     torch.manual_seed(0)
-    disp, pose = build_models(cfg)
-    ckpt = tmp_path / "model.pt"
-    state = {
-        "config": config_to_dict(cfg),
-        "step": 0,
-        "disp_net": disp.state_dict(),
-        "pose_net": pose.state_dict(),
-    }
-    save_checkpoint(ckpt, state)
+    ckpt, _, disp = _checkpoint(tmp_path / "model.pt")
     out = tmp_path / "depth.onnx"
     assert main(["export", "onnx", "--checkpoint", str(ckpt), "--out", str(out)]) == 0
     assert "max |difference|" in capsys.readouterr().out
@@ -70,16 +75,7 @@ def test_export_of_a_crop_trained_model_takes_the_crop(tmp_path):
     """A model trained on a 180-degree crop (no wrap-around) exports at the crop's width."""
     from cylsfm.export.onnx import export_depth_onnx
 
-    cfg = apply_overrides(preset("default"), ["data.width=256", "data.height=64", "data.fov=180"])
-    disp, pose = build_models(cfg)
+    ckpt, cfg, _ = _checkpoint(tmp_path / "crop.pt", "data.fov=180")
     assert not cfg.wrap
-    ckpt = tmp_path / "crop.pt"
-    state = {
-        "config": config_to_dict(cfg),
-        "step": 0,
-        "disp_net": disp.state_dict(),
-        "pose_net": pose.state_dict(),
-    }
-    save_checkpoint(ckpt, state)
     result = export_depth_onnx(ckpt, tmp_path / "crop.onnx")
     assert result.size == (128, 64) and result.max_rel_diff < 1e-4

@@ -146,7 +146,7 @@ class SequenceDataset(Dataset):
         self._bad_frames: set[tuple[int, int]] = set()
         self._bad_targets: set[tuple[int, int]] = set()
         self._mask_cache: dict[int, np.ndarray] = {}
-        self.frame_cache = self._decode_all() if len(table) and self._should_cache(cache) else None
+        self.frame_cache = self._frame_cache(cache) if len(table) else None
 
     # ------------------------------------------------------------------ building
     def _resized_cameras(self) -> list[Camera]:
@@ -218,26 +218,21 @@ class SequenceDataset(Dataset):
         idx = np.asarray(chosen, dtype=np.int64)
         return (table[idx] if len(idx) else table[:0]), seq_arr[idx]
 
-    def _frame_keys(self) -> list[tuple[int, int]]:
-        """``(sequence, frame)`` of every frame some snippet uses, each once."""
-        pairs = zip(self._seq_idx.tolist(), self._snippets.tolist(), strict=True)
-        return sorted({(s, f) for s, row in pairs for f in row})
-
-    def _should_cache(self, cache: bool | str) -> bool:
+    def _frame_cache(self, cache: bool | str) -> FrameCache | None:
+        """Every frame of the snippets decoded once at the dataset's size, if ``cache`` asks for it
+        (``"auto"``: when they take at most a quarter of the free memory)."""
         if cache not in (True, False, "auto"):
             raise InputError(f"cache must be True, False or 'auto', got {cache!r}")
-        if cache != "auto":
-            return bool(cache)
-        camera = self.cameras[int(self._seq_idx[0])]
-        need = FrameCache.nbytes(len(self._frame_keys()), (camera.height, camera.width))
-        free = available_memory_bytes()
-        return free is None or need <= free // 4
-
-    def _decode_all(self) -> FrameCache:
-        """Every frame of the snippets, decoded once at the dataset's size."""
-        keys = self._frame_keys()
+        if not cache:
+            return None
+        pairs = zip(self._seq_idx.tolist(), self._snippets.tolist(), strict=True)
+        keys = sorted({(s, f) for s, row in pairs for f in row})
         camera = self.cameras[keys[0][0]]
-        return FrameCache(keys, (camera.height, camera.width), self._decode)
+        shape = (camera.height, camera.width)
+        free = available_memory_bytes()
+        if cache == "auto" and free is not None and FrameCache.nbytes(len(keys), shape) > free // 4:
+            return None
+        return FrameCache(keys, shape, self._decode)
 
     def _decode(self, s: int, f: int) -> np.ndarray:
         """Frame ``f`` of sequence ``s`` as ``uint8 [H,W,3]`` at the dataset's size."""

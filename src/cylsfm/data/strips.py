@@ -29,7 +29,14 @@ from .io import DatasetError, image_size, load_image, parse_numbers, read_text
 from .sample import build_sample, camera_class, check_size
 from .splits import check_snippet_args
 
-__all__ = ["StripDataset", "read_cam_txt"]
+__all__ = ["StripDataset", "is_strip_dataset", "read_cam_txt"]
+
+
+def is_strip_dataset(root: str | os.PathLike[str]) -> bool:
+    """Whether ``root`` holds strips prepared for the original SfMLearner code: a ``train.txt`` list and no
+    sequence of the cylsfm format (no ``*/camera.json``)."""
+    root = Path(root)
+    return (root / "train.txt").is_file() and not any(root.glob("*/camera.json"))
 
 
 def read_cam_txt(path: str | os.PathLike[str]) -> tuple[float, float, float, float]:

@@ -22,10 +22,11 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import CylsfmError
+from ..geometry import CylindricalCamera
 from ..geometry.seam import standard_ops
-from ..model import load_models
+from ..model import Predictor, load_models
 
-__all__ = ["DepthOutput", "OnnxExport", "export_depth_onnx", "onnx_session"]
+__all__ = ["DepthOutput", "OnnxExport", "export_depth_onnx", "export_onnx", "onnx_session"]
 
 
 class DepthOutput(nn.Module):
@@ -61,29 +62,12 @@ def onnx_session(path: str | os.PathLike[str], threads: int | None = None):
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
-def export_depth_onnx(
-    checkpoint: str | os.PathLike[str], out: str | os.PathLike[str], opset: int = 18, check: bool = True
-) -> OnnxExport:
-    """Export the depth network of ``checkpoint`` (a file or run directory) to ``out`` (written atomically).
+def export_onnx(model: nn.Module, example: Tensor, out: str | os.PathLike[str], opset: int = 18) -> None:
+    """Export ``model`` (one image input ``[B,3,H,W]`` -> ``depth``) to ``out`` with a dynamic batch size.
 
-    Args:
-        checkpoint: a cylsfm checkpoint or run directory.
-        out: the ``.onnx`` file to write.
-        opset: the ONNX operator set.
-        check: run the exported model with ONNX Runtime on a test panorama and compare with PyTorch.
-
-    Raises:
-        CylsfmError: the checkpoint cannot be read, or the ONNX packages are missing.
+    The wrap padding is traced in standard operators (:func:`~cylsfm.geometry.seam.standard_ops`); the file
+    is written beside ``out`` and renamed, so a reader never sees half a model.
     """
-    models = load_models(checkpoint, "cpu")
-    cfg = models.config
-    width, height = cfg.data.width, cfg.data.height
-    if cfg.data.fov < 360:
-        from ..geometry import CylindricalCamera
-
-        width = CylindricalCamera.full(width, height).crop(cfg.data.fov).width
-    model = DepthOutput(models.disp_net.float()).eval()
-    example = torch.rand(2, 3, height, width, generator=torch.Generator().manual_seed(0))
     try:
         with standard_ops(), torch.no_grad(), warnings.catch_warnings():
             warnings.filterwarnings("ignore", category=UserWarning)
@@ -101,11 +85,32 @@ def export_depth_onnx(
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    try:  # written beside, then renamed: a reader never sees half a model
+    try:
         program.save(str(tmp))
         os.replace(tmp, out)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def export_depth_onnx(
+    checkpoint: str | os.PathLike[str], out: str | os.PathLike[str], opset: int = 18, check: bool = True
+) -> OnnxExport:
+    """Export the depth network of ``checkpoint`` (a file or run directory) to ``out`` (written atomically).
+
+    Args:
+        checkpoint: a cylsfm checkpoint or run directory.
+        out: the ``.onnx`` file to write.
+        opset: the ONNX operator set.
+        check: run the exported model with ONNX Runtime on a test panorama and compare with PyTorch.
+
+    Raises:
+        CylsfmError: the checkpoint cannot be read, or the ONNX packages are missing.
+    """
+    predictor = Predictor(load_models(checkpoint, "cpu"))
+    width, height = predictor.network_camera(CylindricalCamera.full(*predictor.size)).size
+    model = DepthOutput(predictor.models.disp_net.float()).eval()
+    example = torch.rand(2, 3, height, width, generator=torch.Generator().manual_seed(0))
+    export_onnx(model, example, out, opset)
     abs_diff = rel_diff = float("nan")
     if check:
         with torch.no_grad():

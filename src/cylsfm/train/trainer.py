@@ -31,7 +31,7 @@ from torch import Tensor, nn
 
 from ..data.dataset import AugmentConfig, SequenceDataset, StaticFilter, camera_of
 from ..data.format import load_mask
-from ..data.strips import StripDataset
+from ..data.strips import StripDataset, is_strip_dataset
 from ..errors import CylsfmError
 from ..geometry import Camera, pose_vec_to_mat
 from ..losses import image_pyramid, view_synthesis_loss
@@ -135,7 +135,7 @@ class Trainer:
         d = self.cfg.data
         augment = AugmentConfig(mirror=d.mirror, color_jitter=d.color_jitter, roll=d.roll, reverse=d.reverse)
         root = Path(d.root)
-        if _is_strip_root(root):
+        if is_strip_dataset(root):
             split = d.split or "train"
             return StripDataset(root, split, d.seq_length, "cylindrical", (d.width, d.height), augment)
         return SequenceDataset(
@@ -482,8 +482,3 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
         else:
             out[f"{prefix}{k}"] = v
     return out
-
-
-def _is_strip_root(root: Path) -> bool:
-    """A dataset prepared for the original SfMLearner code: ``train.txt`` and no format-v1 sequences."""
-    return (root / "train.txt").is_file() and not any(root.glob("*/camera.json"))

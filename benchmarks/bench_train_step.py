@@ -66,15 +66,19 @@ def train_step_bench(
     cylindrical: bool = True,
     loss: str = "paper",
     fused_adam: bool = True,
+    small_maps: bool = True,
 ) -> dict:
     from torch.utils.flop_counter import FlopCounterMode
 
     from cylsfm.geometry import CylindricalCamera, PinholeCamera, pose_vec_to_mat
     from cylsfm.losses import LossConfig, image_pyramid, view_synthesis_loss
     from cylsfm.nn import DispNet, PoseExpNet
+    from cylsfm.nn import small_maps as small_maps_module
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)
+    if not small_maps:  # the tiny deepest maps by oneDNN too, as before the matrix-product path
+        small_maps_module.MAX_POSITIONS = 0
     fmt = torch.channels_last if channels_last else torch.contiguous_format
     # cylindrical: wrap-aware networks on a full panorama; otherwise the same networks, unwrapped, on a
     # pinhole camera: the SfMLearner baseline, measured in the same run.
@@ -137,6 +141,7 @@ def train_step_bench(
         "batch": batch,
         "channels_last": channels_last,
         "fused_adam": fused_adam,
+        "small_maps": small_maps,
         "step_s": t_step,
         "samples_per_s": batch / t_step,
         "step_gflop": flops / 1e9,
@@ -169,6 +174,12 @@ def main(argv: list[str] | None = None) -> None:
         default="paper",
         help="paper: eq. 1 with explainability; improved: the default recipe",
     )
+    parser.add_argument(
+        "--small-maps",
+        choices=["on", "off", "both"],
+        default="on",
+        help="tiny deepest feature maps as matrix products (cylindrical rows; 'both' adds rows without)",
+    )
     parser.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args(argv)
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
@@ -181,8 +192,9 @@ def main(argv: list[str] | None = None) -> None:
         rows = []
         for w, h in sizes:
             for cl in formats:
-                job = (w, h, args.batch, args.threads, args.steps, cl, True, args.loss)
-                rows.append(pool.apply(_run, (("step", job),)))
+                for small in {"on": [True], "off": [False], "both": [False, True]}[args.small_maps]:
+                    job = (w, h, args.batch, args.threads, args.steps, cl, True, args.loss, True, small)
+                    rows.append(pool.apply(_run, (("step", job),)))
             if not args.no_pinhole:  # SfMLearner's own configuration: pinhole, contiguous, plain Adam
                 job = (w, h, args.batch, args.threads, args.steps, False, False, args.loss, False)
                 rows.append(pool.apply(_run, (("step", job),)))
@@ -206,6 +218,8 @@ def main(argv: list[str] | None = None) -> None:
         fmt = "channels_last" if r["channels_last"] else "contiguous"
         if r["model"] == "pinhole":
             fmt += ", plain Adam (reference)"
+        elif not r["small_maps"]:
+            fmt += ", small maps by oneDNN"
         ratio = f"{r['step_s'] / reference[r['size']]:.2f}x" if r["size"] in reference else "-"
         print(
             f"| {r['model']} | {r['size']} | {fmt} | {r['step_s']:.3f} | {r['samples_per_s']:.1f} | {r['step_gflop']:.1f} "

@@ -15,11 +15,11 @@ either way, so a trained network can be evaluated with or without wrap-around (s
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from ..errors import InputError
 from ..geometry.seam import circular_pad, pad_cat, relu_pad, resize_image
+from .small_maps import conv2d_rows_padded, conv_transpose2d_small
 
 __all__ = [
     "MIN_HEIGHT",
@@ -128,12 +128,11 @@ class WrapConv2d(nn.Conv2d):
         """Convolve ``x`` ``[B, in_channels, H, W]`` -> ``[B, out_channels, H_out, W_out]``."""
         if not self.wrap or self.pad == 0:
             return super().forward(x)
-        x = circular_pad(x, self.pad, self.pad)
-        return F.conv2d(x, self.weight, self.bias, self.stride, (self.pad, 0))
+        return self.forward_padded(circular_pad(x, self.pad, self.pad))
 
     def forward_padded(self, x: torch.Tensor) -> torch.Tensor:
         """Convolve an input already padded circularly by ``self.pad`` columns (see :func:`pad_cat`)."""
-        return F.conv2d(x, self.weight, self.bias, self.stride, (self.pad, 0))
+        return conv2d_rows_padded(x, self.weight, self.bias, self.stride, self.pad)
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, wrap={self.wrap}"
@@ -206,7 +205,10 @@ class WrapConvTranspose2d(nn.ConvTranspose2d):
             return super().forward(x)
         s = self.stride[1]
         width = x.shape[-1]
-        out = super().forward(circular_pad(x, self.wrap_left, self.wrap_right))
+        xp = circular_pad(x, self.wrap_left, self.wrap_right)
+        out = conv_transpose2d_small(
+            xp, self.weight, self.bias, self.stride, self.padding, self.output_padding
+        )
         start = s * self.wrap_left
         return out[..., start : start + s * width]
 
@@ -229,15 +231,8 @@ class WrapConvTranspose2d(nn.ConvTranspose2d):
                 f"forward_padded: padding {pad} is less than the {max(self.wrap_left, self.wrap_right)} "
                 "columns the up-convolution needs"
             )
-        out = F.conv_transpose2d(
-            xp,
-            self.weight,
-            self.bias,
-            self.stride,
-            self.padding,
-            self.output_padding,
-            self.groups,
-            self.dilation,
+        out = conv_transpose2d_small(
+            xp, self.weight, self.bias, self.stride, self.padding, self.output_padding
         )
         return out, self.stride[1] * pad
 

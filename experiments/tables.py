@@ -78,8 +78,37 @@ def pose_table(runs: list[tuple[str, Path]], name: str) -> list[str]:
         lines.append(markdown_row(label, [d[k] for k in keys]))
     if base:
         for bname, b in base.items():
-            lines.append(markdown_row(bname.replace("_", " "), [b.get(k) for k in keys]))
+            if b is not None:
+                lines.append(markdown_row(bname.replace("_", " "), [b.get(k) for k in keys]))
     return lines
+
+
+def motion_table(runs: list[tuple[str, Path]], name: str = "pose.json") -> list[str]:
+    """Does the pose estimate measure the motion? (``pose.json``'s ``motion`` diagnostics, with the compass
+    and constant velocity from the first run, the bounds, and each run's verdict.)"""
+    from cylsfm.evaluate.motion import MOTION_COLUMNS, verdict_line
+
+    lines = _header([h for _, h in MOTION_COLUMNS])
+    refs, verdicts = None, []
+    for label, run in runs:
+        d = _load(run / name)
+        if d is None or not d.get("motion"):
+            continue
+        m = d["motion"]
+        refs = refs or m
+        lines.append(markdown_row(label, [m["model"].get(k) for k, _ in MOTION_COLUMNS]))
+        verdicts.append(f"{label}: {verdict_line(m)}")
+    if refs:
+        for ref in ("compass", "constant_velocity"):
+            if refs.get(ref):
+                lines.append(
+                    markdown_row(ref.replace("_", " "), [refs[ref].get(k) for k, _ in MOTION_COLUMNS])
+                )
+        lines += [
+            "",
+            f"{refs['n_steps']} steps, {refs['n_turning']} turning (|yaw| > {refs['turn_deg']:g} deg)",
+        ]
+    return [*lines, "", *verdicts]
 
 
 def yaw_seeds(runs: list[tuple[str, Path]]) -> list[str]:
@@ -128,6 +157,7 @@ def main(argv: list[str]) -> None:
         ("depth", depth_table(runs)),
         ("depth next to the seam and around the centre", seam_table(runs)),
         ("pose", pose_table(runs, "pose.json")),
+        ("is the motion measured?", motion_table(runs)),
         ("pose, test rides rolled by random yaws", pose_table(runs, "pose_yaw.json")),
         ("pose, several random yaw rolls", yaw_seeds(runs)),
         ("per sequence", per_sequence(runs)),

@@ -421,3 +421,11 @@ def test_bad_configs_and_shapes_are_refused():
             torch.eye(4)[None],
             cam,
         )
+
+
+def test_standing_still_loss_is_the_mean_l1_of_the_standing_samples():
+    from cylsfm.losses import standing_still_loss
+
+    vec = torch.tensor([[[0.1, 0.0, -0.2, 0.0, 0.01, 0.0]], [[5.0, 5.0, 5.0, 5.0, 5.0, 5.0]]])
+    assert float(standing_still_loss(vec, torch.tensor([True, False]))) == pytest.approx(0.31)
+    assert float(standing_still_loss(vec, torch.tensor([False, False]))) == 0.0

@@ -45,6 +45,7 @@ __all__ = [
     "second_order_terms",
     "smoothness_terms",
     "ssim_error",
+    "standing_still_loss",
     "view_synthesis_loss",
     "warp_sources",
 ]
@@ -143,6 +144,16 @@ def explainability_loss(mask: Tensor) -> Tensor:
 
 
 # ----------------------------------------------------------------------------- pyramids
+def standing_still_loss(pose_vec: Tensor, still: Tensor) -> Tensor:
+    """Zero motion for a camera standing still: the mean L1 norm of the pose 6-vectors ``[B,S,6]``
+    (translation in depth units, axis-angle in radians) of the samples where ``still [B]`` (bool) is set;
+    0 when none is. The photometric term cannot ask for it: with auto-masking a standing camera's pixels
+    are all masked, and without it any depth explains identical frames."""
+    if not bool(still.any()):
+        return pose_vec.new_zeros(())
+    return pose_vec[still].abs().sum(-1).mean()
+
+
 def image_pyramid(image: Tensor, sizes: list[tuple[int, int]]) -> list[Tensor]:
     """Area-downsampled copies of ``image [..., C, H, W]`` at ``sizes`` = ``[(H_s, W_s), ...]``.
 
@@ -176,6 +187,8 @@ class LossConfig:
         automask: ignore pixels whose error without warping is lower than with warping (static scene
             parts, objects moving with the camera).
         full_resolution: upsample every scale's disparity to the input size for the photometric term.
+        still_weight: weight of :func:`standing_still_loss` on the samples of a standing camera (the
+            trainer's ``data.still`` fraction; without such samples the term is not computed).
     """
 
     smooth_weight: float = 2.0
@@ -188,9 +201,10 @@ class LossConfig:
     min_reprojection: bool = False
     automask: bool = False
     full_resolution: bool = False
+    still_weight: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("smooth_weight", "image_smooth_weight", "explain_weight"):
+        for name in ("smooth_weight", "image_smooth_weight", "explain_weight", "still_weight"):
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.ssim_weight <= 1:

@@ -365,6 +365,22 @@ def test_reverse_swaps_the_sources_with_their_poses(room_root):
         AugmentConfig(reverse_prob=-0.1)
 
 
+def test_still_makes_a_standing_camera(room_root):
+    plain = SequenceDataset(room_root)[0]
+    aug = AugmentConfig(mirror=False, color_jitter=True, reverse=True, still=1.0)
+    s = SequenceDataset(room_root, augment=aug)[0]
+    assert torch.equal(s["sources"], s["target"][None].expand_as(s["sources"]))
+    assert torch.equal(s["pose_gt"], torch.eye(4, dtype=s["pose_gt"].dtype).expand_as(plain["pose_gt"]))
+    assert not torch.equal(s["sources"], plain["sources"])
+    ds = SequenceDataset(room_root, augment=AugmentConfig(mirror=False, color_jitter=False, still=0.5))
+    torch.manual_seed(0)
+    samples = [ds[0] for _ in range(16)]
+    still = [torch.equal(x["sources"][0], x["target"]) for x in samples]
+    assert 0 < sum(still) < 16
+    with pytest.raises(InputError, match="still"):
+        AugmentConfig(still=2.0)
+
+
 def test_all_augmentations_together(room_root):
     ds = SequenceDataset(room_root, augment=AugmentConfig(mirror_prob=0.5, roll=True, reverse=True))
     torch.manual_seed(1)

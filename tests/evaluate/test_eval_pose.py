@@ -212,7 +212,9 @@ def test_cli_pose_checkpoint_then_trajectory(synth, tmp_path, capsys):
     assert "constant velocity" in text and "model/zero motion" in text
     data = json.loads(js.read_text())
     assert {"ate_mean", "ate_std", "n_snippets", "ape_rmse", "baselines", "sequences", "meta"} <= set(data)
-    assert set(data["baselines"]) == {"zero_motion", "constant_velocity"}
+    assert set(data["baselines"]) == {"zero_motion", "constant_velocity", "compass"}
+    assert "is the motion measured?" in text and "verdict:" in text and "compass" in text
+    assert data["motion"]["model"]["standing_ratio"] is not None and "verdict" in data["motion"]
     for b in data["baselines"].values():
         assert {"ate_mean", "ate_std", "ape_rmse"} <= set(b) and b["ate_mean"] > 0
     # only the test sequence, whole: 8 frames, 4 snippets of 5

@@ -247,3 +247,40 @@ def test_plain_photometric_warm_up_is_used_by_the_trainer(tiny_data, tmp_path):
     after, _, _ = trainer.compute_loss(batch)
     torch.testing.assert_close(warm, ref)
     assert not torch.allclose(warm, after)
+
+
+def test_standing_camera_samples_and_the_compass_are_trained(tiny_data, tmp_path):
+    """data.still: samples whose sources are the target get the zero-motion term (logged, in the total, also
+    for a batch of standing cameras only); model.compass: the restored pose network adds the compass's yaw."""
+    from cylsfm.geometry import roll_angle
+
+    run = tmp_path / "still"
+    extra = {"data.still": 1.0, "model.compass": "true", "data.width": 256}
+    assert train(_cfg(tiny_data, max_steps=2, **extra), run, progress=False)["steps"] == 2
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == 2
+    for row in rows:
+        assert row["still"] > 0 and math.isfinite(row["total"])
+        parts = row["photometric"] + row["smooth"] + row["explain"] + row["still"]
+        assert row["total"] == pytest.approx(parts, rel=1e-6)
+    models = load_models(run)
+    assert models.config.model.compass and models.pose_net.compass
+    gen = torch.Generator().manual_seed(0)
+    target = torch.nn.functional.avg_pool2d(torch.rand(1, 3, 32, 256, generator=gen), 3, 1, 1)
+    sources = torch.stack((target, target.roll(16, -1)), 1)
+    with torch.no_grad():
+        with_compass, _ = models.pose_net(target, sources)
+        models.pose_net.compass = False
+        without, _ = models.pose_net(target, sources)
+    expected = torch.zeros(1, 2, 6)
+    expected[0, 1, 4] = roll_angle(16, 256)
+    torch.testing.assert_close(with_compass - without, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_compass_and_still_settings_are_checked():
+    from cylsfm.model.config import ConfigError
+
+    with pytest.raises(ConfigError, match="compass"):
+        apply_overrides(preset("default"), ["model.compass=true", "data.fov=180"])
+    with pytest.raises(ConfigError, match="still"):
+        apply_overrides(preset("default"), ["data.still=1.5"])

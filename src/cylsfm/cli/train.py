@@ -25,6 +25,8 @@ FLAG_KEYS = {
     "pose_head": "model.pose_head",
     "roll": "data.roll",
     "reverse": "data.reverse",
+    "still": "data.still",
+    "compass": "model.compass",
     "mask": "data.mask",
     "workers": "data.workers",
     "seed": "seed",
@@ -54,6 +56,17 @@ def _train_args(p: argparse.ArgumentParser) -> None:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="play half of the training snippets backwards (time-reversal augmentation)",
+    )
+    p.add_argument(
+        "--still",
+        type=float,
+        help="fraction of training snippets made a camera standing still (sources = target: zero motion)",
+    )
+    p.add_argument(
+        "--compass",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="add the visual compass's yaw (column shift between the panoramas) to the predicted pose",
     )
     p.add_argument("--mask", help="static mask image: white = pixels to use (e.g. without the helmet)")
     p.add_argument("--split", help="split to train on (train, val, test, a split file path, or 'all')")

@@ -57,6 +57,10 @@ class AugmentConfig:
             predict "the first source is one step back" from the source's slot alone, without reading
             the motion from the images; with it the slot says nothing.
         reverse_prob: probability of a reversal.
+        still: probability that the sample becomes a camera standing still: every source replaced by
+            the target (ground-truth poses: the identity). Without such samples a network trained on rides
+            that always move learns the usual step as a prior and predicts it for a camera that does not
+            move; the trainer asks for zero motion on them (``loss.still_weight``).
 
     Raises:
         InputError: for a probability outside ``[0, 1]``, a jitter strength outside ``[0, 1]`` or a hue
@@ -73,12 +77,12 @@ class AugmentConfig:
     roll: bool = False
     reverse: bool = False
     reverse_prob: float = 0.5
+    still: float = 0.0
 
     def __post_init__(self) -> None:
-        if not 0 <= self.mirror_prob <= 1:
-            raise InputError(f"mirror_prob must be in [0, 1], got {self.mirror_prob}")
-        if not 0 <= self.reverse_prob <= 1:
-            raise InputError(f"reverse_prob must be in [0, 1], got {self.reverse_prob}")
+        for name in ("mirror_prob", "reverse_prob", "still"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise InputError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         for name in ("brightness", "contrast", "saturation"):
             value = getattr(self, name)
             if not 0 <= value <= 1:
@@ -128,7 +132,7 @@ def augment_geometry(
     pose_gt: Tensor | None,
     cfg: AugmentConfig,
 ) -> tuple[Tensor, Camera, Tensor | None, Tensor | None, Tensor | None]:
-    """Reverse, roll and mirror a sample at random (in that order), with its ground truth.
+    """Stand still, reverse, roll and mirror a sample at random (in that order), with its ground truth.
 
     Args:
         frames: ``uint8 [L,H,W,3]``, the target first, then the sources in time order.
@@ -142,6 +146,9 @@ def augment_geometry(
         ``(frames, camera, depth, mask, pose_gt)`` transformed alike; unchanged inputs are returned as is.
     """
     width = camera.width
+    if cfg.still and float(torch.rand(())) < cfg.still:
+        frames = frames[:1].expand_as(frames).clone()
+        pose_gt = None if pose_gt is None else torch.eye(4, dtype=pose_gt.dtype).expand_as(pose_gt).clone()
     if cfg.reverse and float(torch.rand(())) < cfg.reverse_prob:
         frames = torch.cat([frames[:1], frames[1:].flip(0)])
         pose_gt = None if pose_gt is None else pose_gt.flip(0)

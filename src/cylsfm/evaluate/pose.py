@@ -73,6 +73,7 @@ from .frames import (
     model_source,
     split_entries,
 )
+from .motion import MotionRecord, format_motion_table, steps_of
 from .plots import plot_trajectories
 from .pose_metrics import (
     TRAJECTORY_METRICS,
@@ -88,7 +89,7 @@ from .pose_metrics import (
     snippet_ates,
     trajectory_metrics,
 )
-from .pose_source import predict_consecutive, read_matched, trajectory_file
+from .pose_source import compass_steps, predict_consecutive, predict_windows, read_matched, trajectory_file
 from .tables import ratio, text_row
 
 __all__ = [
@@ -132,8 +133,9 @@ class _Run:
     yaw_roll: int | None
     out_dir: Path | None
     snippets: dict[str, list[np.ndarray]] = field(
-        default_factory=lambda: {"model": [], "zero_motion": [], "constant_velocity": []}
+        default_factory=lambda: {"model": [], "zero_motion": [], "constant_velocity": [], "compass": []}
     )
+    motion: MotionRecord = field(default_factory=MotionRecord)
 
 
 def _check_options(
@@ -173,11 +175,12 @@ def _open_run(given: Any, chosen: list[SequenceInfo], stride: int | None, **opti
 def _estimate(
     run: _Run, seq: SequenceInfo, index: np.ndarray, times: np.ndarray, roll: int, info: dict
 ) -> Any:
-    """``(c2w [M,4,4], matched bool [M])`` of the chain frames ``index [M]`` of ``seq``: the model's
-    chained trajectory (written to ``out`` when given) or the matched poses of a TUM file; ``None`` when
-    the chain is shorter than the model's window (with a warning)."""
+    """``(c2w [M,4,4], matched bool [M], windows)`` of the chain frames ``index [M]`` of ``seq``: the
+    model's chained trajectory (written to ``out`` when given) with its :class:`WindowPoses`, or the matched
+    poses of a TUM file (windows ``None``); ``None`` when the chain is shorter than the model's window (with
+    a warning)."""
     if run.predictor is None:
-        return read_matched(run.files[seq.name], times)
+        return (*read_matched(run.files[seq.name], times), None)
     seq_length = int(run.predictor.config.data.seq_length)
     if len(index) < seq_length:
         warnings.warn(
@@ -188,42 +191,59 @@ def _estimate(
         )
         return None
     images = [seq.images[i] for i in index]
-    steps = predict_consecutive(
-        run.predictor, images, seq.camera, run.batch_size, run.progress, seq.name, roll
-    )
-    est = chain_poses(steps)
+    windows = predict_windows(run.predictor, images, seq.camera, run.batch_size, run.progress, seq.name, roll)
+    est = chain_poses(windows.steps(len(images)))
     if run.out_dir is not None:
         write_tum(run.out_dir / f"{seq.name}.txt", times, est)
         info["tum"] = str(run.out_dir / f"{seq.name}.txt")
-    return est, np.ones(len(index), dtype=bool)
+    return est, np.ones(len(index), dtype=bool), windows
+
+
+@dataclass
+class _Estimate:
+    """One sequence's estimate: camera-to-world poses ``c2w [M,4,4]``, which frames have one (``matched``),
+    the network's windows (or ``None``) and the compass's chained trajectory (or ``None``)."""
+
+    c2w: np.ndarray
+    matched: np.ndarray
+    windows: Any
+    compass: np.ndarray | None = None
+
+
+def _record_motion(run: _Run, gt: np.ndarray, est: _Estimate) -> None:
+    """The consecutive steps of one sequence (both frames matched) into ``run.motion``."""
+    both = est.matched[:-1] & est.matched[1:]
+    compass = None if est.compass is None else steps_of(est.compass)[both]
+    run.motion.add(steps_of(gt)[both], steps_of(est.c2w)[both], compass, est.windows)
 
 
 def _score(
-    run: _Run,
-    seq: SequenceInfo,
-    gt: np.ndarray,
-    times: np.ndarray,
-    est: np.ndarray,
-    matched: np.ndarray,
-    info: dict,
+    run: _Run, seq: SequenceInfo, gt: np.ndarray, times: np.ndarray, est: _Estimate, info: dict
 ) -> None:
-    """Score one sequence's estimate against its ground truth ``[M,4,4]``: snippet ATEs (kept in ``run``)
-    and, with at least 3 matched frames, the full-trajectory metrics of the model and the baselines
-    (and the plot, with ``out``), all into ``info``."""
-    ates = snippet_ates(gt, est, run.snippet, matched)
+    """Score one sequence's estimate against its ground truth ``[M,4,4]``: snippet ATEs (kept in ``run``),
+    the motion diagnostics' steps and, with at least 3 matched frames, the full-trajectory metrics of the
+    model, the compass and the baselines (and the plot, with ``out``), all into ``info``."""
+    ates = snippet_ates(gt, est.c2w, run.snippet, est.matched)
     for k, v in ates.items():
         run.snippets[k].append(v)
+    if est.compass is not None:
+        run.snippets["compass"].append(snippet_ates(gt, est.compass, run.snippet, est.matched)["model"])
+    _record_motion(run, gt, est)
     info["n_snippets"] = len(ates["model"])
     info["ate_mean"] = float(ates["model"].mean()) if len(ates["model"]) else None
-    sel = np.nonzero(matched)[0]
+    sel = np.nonzero(est.matched)[0]
     if len(sel) < 3:
         return
-    info["model"], aligned = trajectory_metrics(gt[sel], times[sel], est[sel], times[sel], max_diff=1e-6)
+    info["model"], aligned = trajectory_metrics(gt[sel], times[sel], est.c2w[sel], times[sel], max_diff=1e-6)
     base, curves = baseline_trajectories(gt[sel], times[sel], sel)
     info.update(base)
+    curves = {"model (Sim(3)-aligned)": aligned, **curves}
+    if est.compass is not None:
+        info["compass"], along = trajectory_metrics(gt[sel], times[sel], est.compass[sel], times[sel], 1e-6)
+        if along is not None:
+            curves["compass (Sim(3)-aligned)"] = along
     if run.out_dir is not None:
         png = run.out_dir / f"{seq.name}.png"
-        curves = {"model (Sim(3)-aligned)": aligned, **curves}
         plot_trajectories(png, gt[sel, :3, 3], curves, title=f"{seq.name}: top view")
         info["plot"] = str(png)
 
@@ -243,8 +263,8 @@ def _sequence(run: _Run, seq: SequenceInfo, n_seq: int) -> dict[str, Any] | None
     estimate = _estimate(run, seq, index, times, roll, info)
     if estimate is None:
         return None
-    est, matched = estimate
-    info["n_matched"] = int(matched.sum())
+    est = _Estimate(*estimate)
+    info["n_matched"] = int(est.matched.sum())
     if gt is None:
         warnings.warn(
             f"{seq.path / 'poses.txt'}: not found; sequence {seq.name} not scored",
@@ -252,13 +272,16 @@ def _sequence(run: _Run, seq: SequenceInfo, n_seq: int) -> dict[str, Any] | None
             stacklevel=3,
         )
         return info
-    _score(run, seq, gt, times, est, matched, info)
+    if seq.camera.wraps:  # the visual compass reads full panoramas only
+        est.compass = chain_poses(compass_steps([seq.images[i] for i in index], roll))
+    _score(run, seq, gt, times, est, info)
     return info
 
 
-def _summary(run: _Run, per_seq: dict[str, dict[str, Any]], root: Path) -> dict[str, dict[str, Any]]:
-    """``{"model", "zero_motion", "constant_velocity"}``: snippet ATEs over all snippets, full-trajectory
-    metrics averaged over the scored sequences."""
+def _summary(run: _Run, per_seq: dict[str, dict[str, Any]], root: Path) -> dict[str, Any]:
+    """``{"model", "zero_motion", "constant_velocity", "compass", "motion"}``: snippet ATEs over all
+    snippets, full-trajectory metrics averaged over the scored sequences (``"compass"`` ``None`` unless
+    every scored sequence is a full panorama), and the motion diagnostics."""
     if not any(len(v) for v in run.snippets["zero_motion"]) and not any(
         "model" in d for d in per_seq.values()
     ):
@@ -266,13 +289,15 @@ def _summary(run: _Run, per_seq: dict[str, dict[str, Any]], root: Path) -> dict[
             f"{root}: nothing to score (evaluated sequences need poses.txt and at least {run.snippet} frames)"
         )
     scored = [d for d in per_seq.values() if "model" in d]
-    out = {}
-    for name, keys in (
-        ("model", TRAJECTORY_METRICS),
-        ("zero_motion", _ZERO_MOTION_METRICS),
-        ("constant_velocity", TRAJECTORY_METRICS),
-    ):
+    out: dict[str, Any] = {}
+    names = [("model", TRAJECTORY_METRICS), ("zero_motion", _ZERO_MOTION_METRICS)]
+    names.append(("constant_velocity", TRAJECTORY_METRICS))
+    if len(run.snippets["compass"]) == len(run.snippets["model"]):
+        names.append(("compass", TRAJECTORY_METRICS))
+    for name, keys in names:
         out[name] = {**ate_summary(run.snippets[name]), **average_metrics([d[name] for d in scored], keys)}
+    out.setdefault("compass", None)
+    out["motion"] = run.motion.summary()
     return out
 
 
@@ -361,7 +386,12 @@ def pose_json(result: dict[str, Any]) -> dict[str, Any]:
      "rpe_trans_rmse", "rpe_rot_deg_rmse",                         RPE, delta 1 frame
      "baselines": {"zero_motion": {"ate_mean", "ate_std", "n_snippets", "ape_rmse", "ape_mean",
                                    "ape_median", "ape_max"},
-                   "constant_velocity": {same keys as the model}},
+                   "constant_velocity": {same keys as the model},
+                   "compass": {same keys as the model} or None (not full panoramas)},
+     "motion": {"turn_deg", "n_steps", "n_turning", "verdict": {"measured", "failures"},
+                "model": {"yaw_slope", "yaw_correlation", "rot_err_deg", "rot_err_deg_turning",
+                          "standing_ratio", "swap_cosine", "fb_trans_ratio", "fb_rot_deg", ...},
+                "compass": {...} or None, "constant_velocity": {...}}     see cylsfm.evaluate.motion
      "sequences": {SEQ: {"n_frames", "n_matched", "n_snippets", "ate_mean", "model": {...},
                          "zero_motion": {...}, "constant_velocity": {...}, "tum", "plot"}},
      "meta": {"source", "data", "split", "split_name", "snippet", "stride", "out", "yaw_roll"}}
@@ -370,7 +400,9 @@ def pose_json(result: dict[str, Any]) -> dict[str, Any]:
     out["baselines"] = {
         "zero_motion": result["zero_motion"],
         "constant_velocity": result["constant_velocity"],
+        "compass": result.get("compass"),
     }
+    out["motion"] = result.get("motion")
     out["sequences"] = result["sequences"]
     out["meta"] = {
         k: result.get(k)
@@ -381,7 +413,7 @@ def pose_json(result: dict[str, Any]) -> dict[str, Any]:
 
 def format_pose_table(result: dict[str, Any]) -> str:
     """A readable table of a result of :func:`evaluate_pose`: model and baselines, then the ratios
-    model / baseline (below 1 is better)."""
+    model / baseline (below 1 is better), then the motion diagnostics and their verdict."""
     cols = POSE_TABLE_METRICS
     lines = [
         f"pose: {result['n_snippets']} snippets of {result['snippet']} frames (stride {result['stride']}), "
@@ -393,10 +425,14 @@ def format_pose_table(result: dict[str, Any]) -> str:
         ("zero motion", result["zero_motion"]),
         ("constant velocity", result["constant_velocity"]),
     ]
+    if result.get("compass") is not None:
+        rows.append(("compass", result["compass"]))
     for name, m in rows:
         lines.append(text_row(name, [m.get(c) for c in cols], 17, 26))
     for name, m in rows[1:]:
         lines.append(
             text_row(f"model/{name}", [ratio(result["model"].get(c), m.get(c)) for c in cols], 17, 26)
         )
+    if result.get("motion") is not None:
+        lines += ["", format_motion_table(result["motion"])]
     return "\n".join(lines)

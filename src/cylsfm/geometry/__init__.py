@@ -4,6 +4,7 @@ Nothing here knows about networks or datasets.
 """
 
 from .cameras import Camera, CameraError, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
+from .compass import column_shift, compass_yaw
 from .pose import (
     axis_angle_to_matrix,
     compose,
@@ -44,6 +45,8 @@ __all__ = [
     "axis_angle_to_matrix",
     "circular_pad",
     "column_difference",
+    "column_shift",
+    "compass_yaw",
     "compose",
     "inverse_warp",
     "invert",

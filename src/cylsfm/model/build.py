@@ -20,7 +20,11 @@ def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseExpNet]:
     n_src = cfg.data.seq_length - 1
     disp = DispNet(wrap=cfg.wrap)
     pose = PoseExpNet(
-        n_sources=n_src, explainability=cfg.model.explainability, wrap=cfg.wrap, pose_head=cfg.model.pose_head
+        n_sources=n_src,
+        explainability=cfg.model.explainability,
+        wrap=cfg.wrap,
+        pose_head=cfg.model.pose_head,
+        compass=cfg.model.compass,
     )
     return disp, pose
 

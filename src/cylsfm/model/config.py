@@ -52,6 +52,7 @@ class DataConfig:
     color_jitter: bool = True
     roll: bool = False  # random yaw rolls of whole samples; only with the equivariant pose head
     reverse: bool = False  # play half of the samples backwards (the sources swap places)
+    still: float = 0.0  # fraction of samples made a standing camera (sources = target): zero motion
     static_filter: str = "auto"  # auto | poses | image | none
     min_translation: float = 0.05
     min_image_diff: float = 0.01
@@ -68,6 +69,7 @@ class ModelConfig:
     wrap: bool = True
     explainability: bool = False
     pose_head: str = "mean"  # "mean" (the paper's spatial average) | "equivariant" (yaw-equivariant)
+    compass: bool = False  # add the visual compass's yaw to the pose (full panoramas only)
 
     def __post_init__(self) -> None:
         if self.pose_head not in ("mean", "equivariant"):
@@ -126,6 +128,10 @@ class TrainConfig:
             )
         if self.data.roll and self.data.fov < 360:
             raise ConfigError("data.roll needs full 360-degree panoramas (data.fov = 360)")
+        if self.model.compass and not self.wrap:
+            raise ConfigError("model.compass needs full 360-degree panoramas (data.fov = 360, model.wrap on)")
+        if not 0 <= self.data.still <= 1:
+            raise ConfigError(f"data.still must be in [0, 1], got {self.data.still}")
 
     def loss_at(self, step: int) -> LossConfig:
         """The loss configuration of training step ``step`` (0-based): plain photometric during warm-up."""

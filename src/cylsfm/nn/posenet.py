@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from ..errors import check_shape
+from ..geometry.compass import compass_yaw
 from ..geometry.seam import memory_format_of, pad_cat, relu_pad
 from .layers import WrapConv2d, WrapConvTranspose2d, check_input_size, crop_like, init_weights
 
@@ -42,11 +43,18 @@ class PoseExpNet(nn.Module):
       ``omega -> Q omega`` with ``Q = yaw_matrix(Delta)``, so random yaw-roll augmentation is possible.
       It is meant for full panoramas.
 
+    With ``compass`` the yaw between the target and each source read in closed form by the visual compass
+    (:func:`cylsfm.geometry.compass_yaw`: the circular column shift that aligns the two panoramas) is added
+    to the predicted rotation about the vertical axis (``ry``): the network predicts the translation and
+    what the compass leaves of the rotation. The compass has no weights and passes no gradient; it needs
+    full 360° panoramas (``wrap``).
+
     Args:
         n_sources: number of source frames ``S``.
         explainability: whether to build and run the explainability-mask decoder.
         wrap: horizontal wrap-around (requires widths that are multiples of 128).
         pose_head: ``"mean"`` or ``"equivariant"`` (see above).
+        compass: add the visual compass's yaw (see above); needs ``wrap``.
     """
 
     enc_channels = (16, 32, 64, 128, 256, 256, 256)
@@ -54,11 +62,19 @@ class PoseExpNet(nn.Module):
     dec_channels = (256, 128, 64, 32, 16)
 
     def __init__(
-        self, n_sources: int = 2, explainability: bool = True, wrap: bool = True, pose_head: str = "mean"
+        self,
+        n_sources: int = 2,
+        explainability: bool = True,
+        wrap: bool = True,
+        pose_head: str = "mean",
+        compass: bool = False,
     ) -> None:
         super().__init__()
         if n_sources < 1:
             raise ValueError(f"n_sources must be >= 1, got {n_sources}")
+        if compass and not wrap:
+            raise ValueError("the visual compass needs full 360-degree panoramas (wrap=True)")
+        self.compass = compass
         if pose_head not in ("mean", "equivariant"):
             raise ValueError(f"pose_head must be 'mean' or 'equivariant', got {pose_head!r}")
         self.pose_head = pose_head
@@ -126,6 +142,8 @@ class PoseExpNet(nn.Module):
             pose = 0.01 * raw.mean(dim=(2, 3)).view(b, s, 6)
         else:
             pose = 0.01 * _rotate_columns_and_average(raw.mean(dim=2).view(b, s, 2, 3, raw.shape[-1]))
+        if self.compass:
+            pose = pose + _compass_rotation(target, sources).to(pose.dtype)
         return pose, masks
 
     def _forward_modules(
@@ -187,6 +205,17 @@ class PoseExpNet(nn.Module):
                 head = self.mask_heads[i - 1]
                 masks.append(torch.sigmoid(head.forward_padded(_narrow(xp, pad - head.pad))))
         return feats, masks[::-1]
+
+
+def _compass_rotation(target: torch.Tensor, sources: torch.Tensor) -> torch.Tensor:
+    """``[B,S,6]``: zeros but for ``ry``, the compass's yaw from the target ``[B,3,H,W]`` to each source
+    ``[B,S,3,H,W]`` (no gradient)."""
+    with torch.no_grad():
+        b, s = sources.shape[:2]
+        tgt = target[:, None].expand_as(sources).flatten(0, 1)
+        yaw = compass_yaw(tgt.float(), sources.flatten(0, 1).float()).view(b, s, 1)
+    zeros = torch.zeros_like(yaw)
+    return torch.cat((zeros, zeros, zeros, zeros, yaw, zeros), -1)
 
 
 def _narrow(xp: torch.Tensor, extra: int) -> torch.Tensor:

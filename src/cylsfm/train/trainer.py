@@ -34,7 +34,7 @@ from ..data.format import load_mask
 from ..data.strips import StripDataset, is_strip_dataset
 from ..errors import CylsfmError
 from ..geometry import Camera, pose_vec_to_mat
-from ..losses import image_pyramid, view_synthesis_loss
+from ..losses import image_pyramid, standing_still_loss, view_synthesis_loss
 from ..model.build import build_models
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.config import TrainConfig, config_from_dict, config_to_dict, save_config
@@ -133,7 +133,9 @@ class Trainer:
         """The training samples: dataset format v1, or the strips prepared for the original SfMLearner code
         (a root with ``train.txt`` and no ``camera.json`` sequences; cylindrical intrinsics in ``cam.txt``)."""
         d = self.cfg.data
-        augment = AugmentConfig(mirror=d.mirror, color_jitter=d.color_jitter, roll=d.roll, reverse=d.reverse)
+        augment = AugmentConfig(
+            mirror=d.mirror, color_jitter=d.color_jitter, roll=d.roll, reverse=d.reverse, still=d.still
+        )
         root = Path(d.root)
         if is_strip_dataset(root):
             split = d.split or "train"
@@ -243,6 +245,13 @@ class Trainer:
             target_pyramid=image_pyramid(tgt32, sizes),
             source_pyramid=image_pyramid(src.float(), photo_sizes),
         )
+        total, terms = out.total, out.terms
+        if self.cfg.data.still > 0:  # samples of a standing camera: sources identical to the target
+            still = (src == tgt[:, None]).flatten(1).all(1)
+            terms = dict(terms)
+            terms["still"] = loss_cfg.still_weight * standing_still_loss(pose_vec.float(), still)
+            total = total + terms["still"]
+            terms["total"] = total
         visuals = {
             "target": tgt32[:1].detach(),
             "warped": out.warped[:1] if out.warped is not None else None,
@@ -251,7 +260,7 @@ class Trainer:
             "explainability": masks[0][:1].detach() if masks is not None else None,
             "translation_norm": poses[:, :, :3, 3].norm(dim=-1).mean().detach(),
         }
-        return out.total, out.terms, visuals
+        return total, terms, visuals
 
     def train_step(self, batch: dict[str, Any]) -> tuple[dict[str, float], dict[str, Tensor]]:
         self.net.train()

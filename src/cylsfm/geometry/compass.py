@@ -1,0 +1,83 @@
+"""The visual compass: the yaw between two full panoramas, read in closed form as a circular column shift.
+
+A turn of a 360° camera about its vertical axis shifts its cylindrical panorama circularly by
+``W * yaw / (2 pi)`` columns (:func:`cylsfm.geometry.roll_columns`); a forward motion mostly stretches
+the view ahead and squeezes the view behind, which leaves that shift where it is. So the shift that best
+aligns two frames of a ride measures the camera's turn between them without depth, training or features.
+It is found by phase correlation along the width axis: the cross-power spectrum of the two images' column
+gradients, summed over rows and colour channels and normalised to unit magnitude, is a pure phase ramp
+``exp(-2 pi i k s / W)`` for a pure shift ``s``; its inverse transform peaks at ``s``. The integer peak is
+refined to a fraction of a column by the slope of the residual phase over the low frequencies (exact for a
+pure shift).
+
+The compass learns nothing: in the evaluations it is the reference that a pose network's rotation must
+beat, and it can initialise or check a network's yaw.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..errors import ShapeError, check_shape
+
+__all__ = ["column_shift", "compass_yaw"]
+
+
+def _spectrum(x: Tensor) -> Tensor:
+    """Column-gradient spectrum ``[B, C*H, W//2+1]`` of images ``[B, C, H, W]`` (periodic width)."""
+    x = x.to(torch.float64)
+    grad = x - torch.roll(x, 1, dims=-1)  # the difference across the seam included: circular
+    return torch.fft.rfft(grad.flatten(1, 2), dim=-1)
+
+
+def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125) -> Tensor:
+    """The circular column shift ``s`` with ``b ≈ roll_columns(a, s)``, to a fraction of a column.
+
+    Args:
+        a: panoramas ``[B, C, H, W]`` (any value range), full 360° width.
+        b: panoramas of the same shape.
+        low_band: fraction of the width's frequencies (from the lowest) whose phase refines the integer peak.
+
+    Returns:
+        ``[B]`` shifts in columns (float64), in ``[-W/2, W/2)``.
+
+    >>> a = torch.rand(1, 3, 8, 64)
+    >>> round(float(column_shift(a, torch.roll(a, -5, dims=-1))), 6)
+    -5.0
+    """
+    check_shape(a, "B,C,H,W", "a")
+    if b.shape != a.shape:
+        raise ShapeError(f"column_shift: b {tuple(b.shape)} and a {tuple(a.shape)} differ in shape")
+    width = a.shape[-1]
+    cross = (_spectrum(a).conj() * _spectrum(b)).sum(1)  # [B, W//2+1]; pure shift: |A|^2 e^{-2pi i k s/W}
+    cross[:, 0] = 0
+    phase = cross / cross.abs().clamp_min(1e-12)
+    peak = torch.fft.irfft(phase, n=width, dim=-1).argmax(-1).to(torch.float64)  # [B]
+    k = torch.arange(cross.shape[-1], dtype=torch.float64, device=a.device)
+    # residual phase after removing the integer shift: -2 pi k d / W, fitted through the origin
+    residual = torch.angle(cross * torch.exp(2j * math.pi * k * peak[:, None] / width))
+    n_low = max(2, round(low_band * width))
+    weight = cross.abs()[:, 1:n_low] * k[1:n_low]
+    slope = (weight * residual[:, 1:n_low]).sum(-1) / (weight * k[1:n_low]).sum(-1).clamp_min(1e-30)
+    shift = peak - slope * width / (2 * math.pi)
+    return torch.remainder(shift + width / 2, width) - width / 2
+
+
+def compass_yaw(a: Tensor, b: Tensor) -> Tensor:
+    """The yaw (radians) of the camera of ``b`` relative to that of ``a``, from two full panoramas.
+
+    Camera points of ``b`` are ``yaw_matrix(yaw) @`` those of ``a`` (as for a panorama rolled by
+    :func:`cylsfm.geometry.roll_columns`, see :func:`cylsfm.geometry.roll_angle`), so the relative pose
+    ``T_{a->b}`` (``p_b = T p_a``) has the rotation ``yaw_matrix(yaw)``.
+
+    Args:
+        a: panoramas ``[B, C, H, W]``, full 360° width.
+        b: the same cameras after the motion, same shape.
+
+    Returns:
+        ``[B]`` yaws in radians (float64), in ``[-pi, pi)``.
+    """
+    return column_shift(a, b) * (2 * math.pi / a.shape[-1])

@@ -32,7 +32,7 @@ fi
 run=$out/$name
 resume=()
 if [ -f "$run/checkpoints/latest.pt" ]; then resume=(--resume); fi
-$bin/cylsfm train --data "$data" --out "$run" --size 256x64 --workers 1 --no-progress "${resume[@]}" "$@"
+$bin/cylsfm train --data "$data" --out "$run" --size 256x64 --no-progress "${resume[@]}" "$@"
 $bin/cylsfm evaluate depth --checkpoint "$run" --data "$data" --split test --json "$run/depth.json"
 $bin/cylsfm evaluate pose --checkpoint "$run" --data "$data" --split test --out "$run/trajectories" --json "$run/pose.json"
 $bin/cylsfm evaluate pose --checkpoint "$run" --data "$data" --split test --yaw-roll 0 --json "$run/pose_yaw.json"

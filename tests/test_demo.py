@@ -46,7 +46,7 @@ def test_demo_runs_end_to_end_and_writes_a_report(tmp_path, capsys):
     models = load_models(out / "run")
     cfg = models.config
     assert (cfg.data.width, cfg.data.height, cfg.data.root, cfg.data.split) == (128, 32, str(data), "train")
-    assert cfg.preset == "improved" and cfg.model.pose_head == "mean" and cfg.wrap
+    assert cfg.preset == "default" and cfg.model.pose_head == "mean" and cfg.wrap and cfg.model.compass
     rows = [json.loads(line) for line in (out / "run" / "metrics.jsonl").read_text().splitlines()]
     steps = [r["step"] for r in rows]
     assert steps[0] == 1 and steps == sorted(set(steps)) and steps[-1] <= models.step

@@ -289,3 +289,26 @@ def test_posenet_padded_path_equals_layer_by_layer(explainability: bool, width: 
     params = [p for p in net.parameters() if p is not net.pose_pred.weight and p is not net.pose_pred.bias]
     for a, b in zip(_grads(fast, [t, *params]), _grads(slow, [t, *params]), strict=True):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_antisymmetric_pose_reads_pairs_without_a_prior():
+    """Identical frames give exactly zero motion, a source's prediction does not depend on its slot, the pose
+    from b to a is the negated vector of the pose from a to b, and the compass adds its yaw on top."""
+    from cylsfm.nn import PoseExpNet
+
+    torch.manual_seed(0)
+    net = PoseExpNet(2, explainability=False, antisymmetric=True).eval()
+    with torch.no_grad():  # a bias that a plain head would emit as a motion
+        net.pose_pred.bias.fill_(1.0)
+    a, b, c = (torch.rand(1, 3, 32, 128) for _ in range(3))
+    with torch.no_grad():
+        pose, masks = net(a, torch.stack((b, c), 1))
+        still, _ = net(a, torch.stack((a, a), 1))
+        swapped, _ = net(a, torch.stack((c, b), 1))
+        back, _ = net(b, torch.stack((a, c), 1))
+    assert masks is None and pose.shape == (1, 2, 6) and pose.abs().max() > 0
+    assert still.abs().max() == 0
+    torch.testing.assert_close(swapped.flip(1), pose)
+    torch.testing.assert_close(back[0, 0], -pose[0, 0])
+    with pytest.raises(ValueError, match="explainability"):
+        PoseExpNet(2, explainability=True, antisymmetric=True)

@@ -86,3 +86,13 @@ def test_network_gradients_do_not_depend_on_the_path(monkeypatch):
     plain = grads()
     for a, b in zip(fast, plain, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-5)
+
+
+def test_channels_last_inputs_give_channels_last_outputs():
+    x = torch.randn(2, 6, 2, 10).contiguous(memory_format=torch.channels_last).requires_grad_()
+    w = torch.randn(4, 6, 3, 3, requires_grad=True)
+    y = conv2d_rows_padded(x, w, None, 1, 1)
+    assert y.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(y, F.conv2d(x, w, None, 1, (1, 0)), rtol=1e-4, atol=1e-4)
+    up = conv_transpose2d_small(x, torch.randn(6, 4, 3, 3), None, (2, 2), (1, 1), (1, 1))
+    assert up.is_contiguous(memory_format=torch.channels_last)

@@ -198,7 +198,12 @@ def test_equivariant_head_is_trained_and_restored(tiny_data, tmp_path):
     """The yaw-equivariant pose head with roll augmentation: the restored network turns its output with a roll
     of the panoramas (the averaging head would be invariant to it)."""
     run = tmp_path / "eq"
-    extra = {"model.pose_head": "equivariant", "data.roll": "true", "data.width": 256}
+    extra = {
+        "model.pose_head": "equivariant",
+        "data.roll": "true",
+        "data.width": 256,
+        "model.compass": "false",
+    }
     assert train(_cfg(tiny_data, max_steps=1, **extra), run, progress=False)["steps"] == 1
     [row] = _metrics(run)
     assert row["step"] == 1 and row["translation_norm"] > 0
@@ -278,9 +283,12 @@ def test_standing_camera_samples_and_the_compass_are_trained(tiny_data, tmp_path
 
 
 def test_compass_and_still_settings_are_checked():
+    from cylsfm.model import build_models
     from cylsfm.model.config import ConfigError
 
-    with pytest.raises(ConfigError, match="compass"):
-        apply_overrides(preset("default"), ["model.compass=true", "data.fov=180"])
+    crop = apply_overrides(preset("default"), ["model.compass=true", "data.fov=180"])
+    assert not build_models(crop)[1].compass  # a crop is no full panorama: no compass
     with pytest.raises(ConfigError, match="still"):
         apply_overrides(preset("default"), ["data.still=1.5"])
+    with pytest.raises(ConfigError, match="antisymmetric"):
+        apply_overrides(preset("default"), ["model.antisymmetric=true", "model.explainability=true"])

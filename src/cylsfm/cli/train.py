@@ -27,6 +27,7 @@ FLAG_KEYS = {
     "reverse": "data.reverse",
     "still": "data.still",
     "compass": "model.compass",
+    "antisymmetric": "model.antisymmetric",
     "mask": "data.mask",
     "workers": "data.workers",
     "seed": "seed",
@@ -67,6 +68,12 @@ def _train_args(p: argparse.ArgumentParser) -> None:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="add the visual compass's yaw (column shift between the panoramas) to the predicted pose",
+    )
+    p.add_argument(
+        "--antisymmetric",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="pose from frame pairs, g(target, source) - g(source, target): no bias or slot prior possible",
     )
     p.add_argument("--mask", help="static mask image: white = pixels to use (e.g. without the helmet)")
     p.add_argument("--split", help="split to train on (train, val, test, a split file path, or 'all')")

@@ -217,10 +217,12 @@ class MotionRecord:
         model = turn_response(np.concatenate(self.model) if self.model else true, true)
         if self.real:
             real = np.concatenate(self.real)
-            model["standing_ratio"] = standing_ratio(np.concatenate(self.standing), real)
+            nxt = real.shape[1] // 2  # the source one frame after the target: the usual step
+            standing = np.concatenate(self.standing)
+            model["standing_ratio"] = standing_ratio(standing[:, nxt], real[:, nxt])
             model["swap_cosine"] = swap_cosine(real, np.concatenate(self.swapped))
             model.update(
-                forward_backward(np.concatenate(self.ab), np.concatenate(self.ba), _median_norm(real))
+                forward_backward(np.concatenate(self.ab), np.concatenate(self.ba), _median_norm(real[:, nxt]))
             )
         out: dict[str, Any] = {
             "turn_deg": TURN_DEG,

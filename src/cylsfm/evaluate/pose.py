@@ -273,7 +273,7 @@ def _sequence(run: _Run, seq: SequenceInfo, n_seq: int) -> dict[str, Any] | None
         )
         return info
     if seq.camera.wraps:  # the visual compass reads full panoramas only
-        est.compass = chain_poses(compass_steps([seq.images[i] for i in index], roll))
+        est.compass = chain_poses(compass_steps([seq.images[i] for i in index], roll, width=seq.camera.width))
     _score(run, seq, gt, times, est, info)
     return info
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from ..data import DatasetError, SequenceInfo, read_tum
-from ..geometry import compass_yaw, rotation_y
+from ..geometry import compass_yaw, roll_angle, rotation_y
 from ..runtime import progress_bar
 from .frames import load_images, prefetch
 from .pose_metrics import consecutive_from_windows, match_times
@@ -129,11 +129,12 @@ def predict_consecutive(
     return windows.steps(len(images))
 
 
-def compass_steps(images: Sequence[Path], roll: int = 0, batch_size: int = 32) -> np.ndarray:
+def compass_steps(images: Sequence[Path], roll: int = 0, batch_size: int = 32, width: int = 0) -> np.ndarray:
     """The visual compass's consecutive relative poses ``T_{j->j+1}`` ``[M-1,4,4]`` (float64) of a chain
     of full panoramas: the yaw between the frames (:func:`cylsfm.geometry.compass_yaw`, no depth, nothing
     learned) after one unit step forward along the camera's +z axis (a constant speed: the scale is fitted
-    by every measure that uses it)."""
+    by every measure that uses it). With ``roll`` (columns of ``width``: frames rolled as if the camera had
+    been mounted turned) forward is +z turned by the roll."""
     yaws = []
     for i in range(0, len(images) - 1, batch_size):
         frames = load_images(images[i : i + batch_size + 1], roll)
@@ -141,7 +142,10 @@ def compass_steps(images: Sequence[Path], roll: int = 0, batch_size: int = 32) -
     yaw = np.concatenate(yaws) if yaws else np.zeros(0)
     out = np.tile(np.eye(4), (len(yaw), 1, 1))
     out[:, :3, :3] = rotation_y(yaw)
-    out[:, :3, 3] = -out[:, :3, 2]  # p_b = R (p_a - c), c = (0, 0, 1): t = -R c
+    ahead = np.array([0.0, 0.0, 1.0])
+    if roll:
+        ahead = rotation_y(np.asarray(roll_angle(roll, width))) @ ahead
+    out[:, :3, 3] = -out[:, :3, :3] @ ahead  # p_b = R (p_a - c), c = the step ahead: t = -R c
     return out
 
 

@@ -67,11 +67,12 @@ def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125) -> Tensor:
 
 
 def compass_yaw(a: Tensor, b: Tensor) -> Tensor:
-    """The yaw (radians) of the camera of ``b`` relative to that of ``a``, from two full panoramas.
+    """The yaw (radians) between the cameras of two full panoramas ``a`` and ``b``.
 
     Camera points of ``b`` are ``yaw_matrix(yaw) @`` those of ``a`` (as for a panorama rolled by
     :func:`cylsfm.geometry.roll_columns`, see :func:`cylsfm.geometry.roll_angle`), so the relative pose
-    ``T_{a->b}`` (``p_b = T p_a``) has the rotation ``yaw_matrix(yaw)``.
+    ``T_{a->b}`` (``p_b = T p_a``) has the rotation ``yaw_matrix(yaw)`` (the camera itself turned by
+    ``-yaw``: a positive yaw moves the scene's azimuths up, :func:`cylsfm.geometry.roll_angle`).
 
     Args:
         a: panoramas ``[B, C, H, W]``, full 360° width.

@@ -24,7 +24,8 @@ def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseExpNet]:
         explainability=cfg.model.explainability,
         wrap=cfg.wrap,
         pose_head=cfg.model.pose_head,
-        compass=cfg.model.compass,
+        compass=cfg.model.compass and cfg.wrap,  # the compass reads full panoramas only
+        antisymmetric=cfg.model.antisymmetric,
     )
     return disp, pose
 

@@ -49,12 +49,20 @@ class PoseExpNet(nn.Module):
     what the compass leaves of the rotation. The compass has no weights and passes no gradient; it needs
     full 360° panoramas (``wrap``).
 
+    With ``antisymmetric`` the network compares two frames at a time: it sees the pair (target, source)
+    and the pair (source, target) (6 input channels, one 6-vector each) and predicts their difference,
+    ``g(t, s) - g(s, t)``. A prediction from the bias alone is then impossible (a constant cancels), two
+    identical frames give exactly zero motion, the pose from b to a is exactly the negated 6-vector of
+    the pose from a to b (its inverse to first order), and a source's prediction does not depend on its slot: the network must read the
+    motion from the pair. No explainability masks in this mode.
+
     Args:
         n_sources: number of source frames ``S``.
         explainability: whether to build and run the explainability-mask decoder.
         wrap: horizontal wrap-around (requires widths that are multiples of 128).
         pose_head: ``"mean"`` or ``"equivariant"`` (see above).
         compass: add the visual compass's yaw (see above); needs ``wrap``.
+        antisymmetric: predict from frame pairs, antisymmetrically (see above).
     """
 
     enc_channels = (16, 32, 64, 128, 256, 256, 256)
@@ -68,13 +76,17 @@ class PoseExpNet(nn.Module):
         wrap: bool = True,
         pose_head: str = "mean",
         compass: bool = False,
+        antisymmetric: bool = False,
     ) -> None:
         super().__init__()
+        if antisymmetric and explainability:
+            raise ValueError("antisymmetric pose prediction has no explainability masks")
         if n_sources < 1:
             raise ValueError(f"n_sources must be >= 1, got {n_sources}")
         if compass and not wrap:
             raise ValueError("the visual compass needs full 360-degree panoramas (wrap=True)")
         self.compass = compass
+        self.antisymmetric = antisymmetric
         if pose_head not in ("mean", "equivariant"):
             raise ValueError(f"pose_head must be 'mean' or 'equivariant', got {pose_head!r}")
         self.pose_head = pose_head
@@ -82,12 +94,13 @@ class PoseExpNet(nn.Module):
         self.explainability = explainability
         self.wrap = wrap
 
-        enc_in = (3 * (1 + n_sources), *self.enc_channels[:-1])
+        per_call = 1 if antisymmetric else n_sources  # sources seen by one pass of the encoder
+        enc_in = (3 * (1 + per_call), *self.enc_channels[:-1])
         self.encoder = nn.ModuleList(
             nn.Sequential(WrapConv2d(cin, cout, k, stride=2, wrap=wrap), nn.ReLU(inplace=True))
             for cin, cout, k in zip(enc_in, self.enc_channels, self.enc_kernels, strict=True)
         )
-        self.pose_pred = WrapConv2d(self.enc_channels[-1], 6 * n_sources, 1, wrap=wrap)
+        self.pose_pred = WrapConv2d(self.enc_channels[-1], 6 * per_call, 1, wrap=wrap)
 
         self.upconvs: nn.ModuleList | None = None
         self.mask_heads: nn.ModuleList | None = None
@@ -132,6 +145,24 @@ class PoseExpNet(nn.Module):
         check_input_size(target.shape[-1], target.shape[-2], self.wrap)
         b, s = target.shape[0], self.n_sources
         check_shape(sources, ",".join(str(n) for n in (b, s, 3, *target.shape[-2:])), "sources")
+        if self.antisymmetric:
+            first = target[:, None].expand_as(sources).flatten(0, 1)  # [B*S,3,H,W]
+            second = sources.flatten(0, 1)
+            pairs, _ = self._predict(
+                torch.cat((first, second)), torch.cat((second, first))[:, None], b * s * 2, 1
+            )
+            pose = (pairs[: b * s] - pairs[b * s :]).view(b, s, 6)
+            masks = None
+        else:
+            pose, masks = self._predict(target, sources, b, s)
+        if self.compass:
+            pose = pose + _compass_rotation(target, sources).to(pose.dtype)
+        return pose, masks
+
+    def _predict(
+        self, target: torch.Tensor, sources: torch.Tensor, b: int, s: int
+    ) -> tuple[torch.Tensor, list[torch.Tensor] | None]:
+        """The encoder, the pose head and the masks on ``[b,3,H,W]`` and ``[b,s,3,H,W]``: ``[b,s,6]``."""
         if self.wrap:
             feats, masks = self._forward_wrapped(target, sources)
         else:
@@ -142,8 +173,6 @@ class PoseExpNet(nn.Module):
             pose = 0.01 * raw.mean(dim=(2, 3)).view(b, s, 6)
         else:
             pose = 0.01 * _rotate_columns_and_average(raw.mean(dim=2).view(b, s, 2, 3, raw.shape[-1]))
-        if self.compass:
-            pose = pose + _compass_rotation(target, sources).to(pose.dtype)
         return pose, masks
 
     def _forward_modules(

@@ -9,8 +9,8 @@ row of zero padding above and below only ever meets the kernel's middle row, so 
 (the others' gradients are exactly zero either way): a third of the work.
 
 Both functions compute exactly what ``F.conv2d`` / ``F.conv_transpose2d`` compute, up to float rounding
-(tested); they choose the matrix product only on the CPU, while gradients are recorded, for outputs of at
-most :data:`MAX_POSITIONS` positions per image.
+(tested); they choose the matrix product only on the CPU, while gradients are recorded, for outputs (for
+the transposed convolution: inputs) of at most :data:`MAX_POSITIONS` positions per image.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def conv2d_rows_padded(
     sh, sw = (stride, stride) if isinstance(stride, int) else stride
     k_rows, k_cols = weight.shape[-2:]
     height, width = x.shape[-2:]
-    if MAX_POSITIONS and height == 1 and pad_rows < k_rows and (k_rows - 1) // 2 == pad_rows:
+    if MAX_POSITIONS and height == 1 and k_rows == 2 * pad_rows + 1:
         # one row, centred kernel: the rows above and below are zeros, only the middle row counts
         weight = weight[:, :, pad_rows : pad_rows + 1]
         k_rows, pad_rows = 1, 0
@@ -62,7 +62,7 @@ def conv2d_rows_padded(
     out = torch.matmul(weight.reshape(weight.shape[0], -1), patches)  # B, C_out, L
     if bias is not None:
         out = out + bias[:, None]
-    return out.reshape(x.shape[0], weight.shape[0], rows, cols)
+    return _like(out.reshape(x.shape[0], weight.shape[0], rows, cols), x)
 
 
 def conv_transpose2d_small(
@@ -96,4 +96,11 @@ def conv_transpose2d_small(
     out = F.fold(patches, (rows, cols), (k_rows, k_cols), padding=padding, stride=stride)
     if bias is not None:
         out = out + bias.reshape(1, c_out, 1, 1)
+    return _like(out, x)
+
+
+def _like(out: Tensor, x: Tensor) -> Tensor:
+    """``out`` in channels-last memory when ``x`` is (as oneDNN's result would be)."""
+    if x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous():
+        return out.contiguous(memory_format=torch.channels_last)
     return out

@@ -312,3 +312,30 @@ def test_antisymmetric_pose_reads_pairs_without_a_prior():
     torch.testing.assert_close(back[0, 0], -pose[0, 0])
     with pytest.raises(ValueError, match="explainability"):
         PoseExpNet(2, explainability=True, antisymmetric=True)
+
+
+def test_slot_prior_scaffold_is_added_by_weight_and_absent_at_inference():
+    """The scaffold blends ``(1 - w) * pair + w * gain * prior`` per slot; at weight 0 (a fresh or loaded network) the
+    prediction is the antisymmetric one, identical frames give exactly zero, and the prior still receives a
+    (zero) gradient so that every parameter takes part in each step."""
+    from cylsfm.nn import PoseExpNet
+
+    torch.manual_seed(0)
+    net = PoseExpNet(2, explainability=False, antisymmetric=True, slot_prior=True).eval()
+    assert net.prior_weight == 0.0
+    with torch.no_grad():
+        net.slot_prior.copy_(torch.tensor([[0, 0, -1.0, 0, 0, 0], [0, 0, 1.0, 0, 0, 0]]) * 1e-3)
+    a, b, c = (torch.rand(1, 3, 32, 128) for _ in range(3))
+    src = torch.stack((b, c), 1)
+    with torch.no_grad():
+        plain, _ = net(a, src)
+        assert net(a, torch.stack((a, a), 1))[0].abs().max() == 0
+        net.prior_weight = 0.5
+        scaffolded, _ = net(a, src)
+    torch.testing.assert_close(scaffolded, 0.5 * plain + 0.5 * 10.0 * net.slot_prior[None])
+    torch.testing.assert_close(net.scaffold_gap, plain[..., :3] - 10.0 * net.slot_prior[None, :, :3])
+    net.prior_weight = 0.0
+    net(a, src)[0].sum().backward()
+    assert net.slot_prior.grad is not None and net.slot_prior.grad.abs().max() == 0
+    with pytest.raises(ValueError, match="antisymmetric"):
+        PoseExpNet(2, explainability=False, slot_prior=True)

@@ -288,7 +288,32 @@ def test_compass_and_still_settings_are_checked():
 
     crop = apply_overrides(preset("default"), ["model.compass=true", "data.fov=180"])
     assert not build_models(crop)[1].compass  # a crop is no full panorama: no compass
+    crop = apply_overrides(preset("default"), ["model.pose_head=equivariant", "data.fov=180"])
+    assert build_models(crop)[1].pose_head == "mean"  # nor azimuths on the full circle
     with pytest.raises(ConfigError, match="still"):
         apply_overrides(preset("default"), ["data.still=1.5"])
     with pytest.raises(ConfigError, match="antisymmetric"):
         apply_overrides(preset("default"), ["model.antisymmetric=true", "model.explainability=true"])
+
+
+def test_slot_prior_fade_schedule_and_checks():
+    from cylsfm.model import build_models
+    from cylsfm.model.config import ConfigError
+
+    cfg = apply_overrides(
+        preset("default"),
+        ["model.antisymmetric=true", "model.prior_fade_start=10", "model.prior_fade_end=30"],
+    )
+    weights = [cfg.model.prior_weight_at(s) for s in (0, 9, 10, 20, 29, 30, 1000)]
+    assert weights == [1.0, 1.0, 1.0, 0.5, pytest.approx(0.05), 0.0, 0.0]
+    pose = build_models(cfg)[1]
+    assert pose.slot_prior is not None and pose.slot_prior.shape == (2, 6)
+    assert build_models(preset("default"))[1].slot_prior is None
+    assert preset("default").model.prior_weight_at(0) == 0.0
+    with pytest.raises(ConfigError, match="antisymmetric"):
+        apply_overrides(preset("default"), ["model.prior_fade_end=30"])
+    with pytest.raises(ConfigError, match="start <= end"):
+        apply_overrides(
+            preset("default"),
+            ["model.antisymmetric=true", "model.prior_fade_start=40", "model.prior_fade_end=30"],
+        )

@@ -23,9 +23,11 @@ def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseExpNet]:
         n_sources=n_src,
         explainability=cfg.model.explainability,
         wrap=cfg.wrap,
-        pose_head=cfg.model.pose_head,
+        # the equivariant head rotates each column by its azimuth on the full circle: crops get the mean head
+        pose_head=cfg.model.pose_head if cfg.wrap else "mean",
         compass=cfg.model.compass and cfg.wrap,  # the compass reads full panoramas only
         antisymmetric=cfg.model.antisymmetric,
+        slot_prior=cfg.model.scaffold,
     )
     return disp, pose
 

@@ -68,13 +68,46 @@ class ModelConfig:
 
     wrap: bool = True
     explainability: bool = False
-    pose_head: str = "mean"  # "mean" (the paper's spatial average) | "equivariant" (yaw-equivariant)
+    # "mean" (the paper's spatial average) | "equivariant" (yaw-equivariant; on full panoramas only,
+    # crops of a smaller field of view get the mean head)
+    pose_head: str = "mean"
     compass: bool = False  # add the visual compass's yaw to the pose (used on full panoramas only)
     antisymmetric: bool = False  # pose from frame pairs, g(t, s) - g(s, t): no bias, no slot prior
+    # A scaffold for the antisymmetric pose network: a learned motion per source slot (the prior that
+    # the paper's head learns in its bias) carries the pose alone until step prior_fade_start, then is
+    # blended out linearly until step prior_fade_end, after which the pair network alone carries the
+    # motion. It gives the depth network parallax from the first steps; meanwhile the pair network is
+    # taught the prior's translation (an L1 term of weight prior_distill times the prior's weight), i.e.
+    # to tell the direction of the motion from the two frames. 0 and 0: no scaffold.
+    prior_fade_start: int = 0
+    prior_fade_end: int = 0
+    prior_distill: float = 1.0
 
     def __post_init__(self) -> None:
         if self.pose_head not in ("mean", "equivariant"):
             raise ConfigError(f"model.pose_head must be 'mean' or 'equivariant', got {self.pose_head!r}")
+        if not 0 <= self.prior_fade_start <= self.prior_fade_end:
+            raise ConfigError(
+                "model.prior_fade_start and model.prior_fade_end must satisfy 0 <= start <= end, got "
+                f"{self.prior_fade_start} and {self.prior_fade_end}"
+            )
+        if self.prior_fade_end > 0 and not self.antisymmetric:
+            raise ConfigError("model.prior_fade_* (the slot-prior scaffold) needs model.antisymmetric=true")
+        if self.prior_distill < 0:
+            raise ConfigError(f"model.prior_distill must be >= 0, got {self.prior_distill}")
+
+    @property
+    def scaffold(self) -> bool:
+        """Whether the pose network carries a fading slot prior (see ``prior_fade_start``)."""
+        return self.prior_fade_end > 0
+
+    def prior_weight_at(self, step: int) -> float:
+        """The weight of the slot-prior scaffold at training step ``step`` (0-based): 1, a linear fade, 0."""
+        if not self.scaffold or step >= self.prior_fade_end:
+            return 0.0
+        if step < self.prior_fade_start:
+            return 1.0
+        return (self.prior_fade_end - step) / (self.prior_fade_end - self.prior_fade_start)
 
 
 @dataclass

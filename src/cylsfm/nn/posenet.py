@@ -12,6 +12,10 @@ from .layers import WrapConv2d, WrapConvTranspose2d, check_input_size, crop_like
 
 __all__ = ["PoseExpNet"]
 
+#: The slot prior is stored divided by this gain, so that Adam's steps (about the learning rate in the
+#: parameter) move it about as fast as the paper's head finds its forward step (~0.015 in 25 steps).
+_PRIOR_GAIN = 10.0
+
 
 class PoseExpNet(nn.Module):
     """Relative pose and explainability-mask network (SfMLearner), wrap-around aware.
@@ -56,6 +60,15 @@ class PoseExpNet(nn.Module):
     the pose from a to b (its inverse to first order), and a source's prediction does not depend on its slot: the network must read the
     motion from the pair. No explainability masks in this mode.
 
+    With ``slot_prior`` (antisymmetric only) the network also carries a learned 6-vector per source slot,
+    ``slot_prior [S, 6]`` (times a gain of 10): the motion by slot that the paper's head learns in its
+    bias, here a scaffold that gives the depth network parallax from the first step while the pair
+    network learns to read the motion. The pose is the blend ``(1 - w) * pair + w * prior`` with
+    ``w = prior_weight`` (an attribute, 0 unless a trainer sets it, faded to 0 during training); the pair
+    network's translation minus the prior's (detached) is kept as ``scaffold_gap [B, S, 3]`` for the
+    trainer's distillation term, which teaches the pair network the direction of the motion while the
+    prior carries it. With ``prior_weight == 0`` (inference) the prediction is exactly antisymmetric.
+
     Args:
         n_sources: number of source frames ``S``.
         explainability: whether to build and run the explainability-mask decoder.
@@ -63,6 +76,7 @@ class PoseExpNet(nn.Module):
         pose_head: ``"mean"`` or ``"equivariant"`` (see above).
         compass: add the visual compass's yaw (see above); needs ``wrap``.
         antisymmetric: predict from frame pairs, antisymmetrically (see above).
+        slot_prior: carry a learned per-slot motion weighted by ``prior_weight`` (see above).
     """
 
     enc_channels = (16, 32, 64, 128, 256, 256, 256)
@@ -77,10 +91,13 @@ class PoseExpNet(nn.Module):
         pose_head: str = "mean",
         compass: bool = False,
         antisymmetric: bool = False,
+        slot_prior: bool = False,
     ) -> None:
         super().__init__()
         if antisymmetric and explainability:
             raise ValueError("antisymmetric pose prediction has no explainability masks")
+        if slot_prior and not antisymmetric:
+            raise ValueError("slot_prior is a scaffold for the antisymmetric pose network only")
         if n_sources < 1:
             raise ValueError(f"n_sources must be >= 1, got {n_sources}")
         if compass and not wrap:
@@ -101,6 +118,9 @@ class PoseExpNet(nn.Module):
             for cin, cout, k in zip(enc_in, self.enc_channels, self.enc_kernels, strict=True)
         )
         self.pose_pred = WrapConv2d(self.enc_channels[-1], 6 * per_call, 1, wrap=wrap)
+        self.slot_prior = nn.Parameter(torch.zeros(n_sources, 6)) if slot_prior else None
+        self.prior_weight = 0.0
+        self.scaffold_gap: torch.Tensor | None = None
 
         self.upconvs: nn.ModuleList | None = None
         self.mask_heads: nn.ModuleList | None = None
@@ -152,6 +172,11 @@ class PoseExpNet(nn.Module):
                 torch.cat((first, second)), torch.cat((second, first))[:, None], b * s * 2, 1
             )
             pose = (pairs[: b * s] - pairs[b * s :]).view(b, s, 6)
+            if self.slot_prior is not None:  # in the graph even at weight 0 (one set of DDP parameters)
+                w = self.prior_weight
+                prior = _PRIOR_GAIN * self.slot_prior.to(pose.dtype)[None].expand_as(pose)
+                self.scaffold_gap = pose[..., :3] - prior[..., :3].detach()
+                pose = (1.0 - w) * pose + w * prior
             masks = None
         else:
             pose, masks = self._predict(target, sources, b, s)

@@ -221,6 +221,7 @@ class Trainer:
 
     def compute_loss(self, batch: dict[str, Any]) -> tuple[Tensor, dict[str, Tensor], dict[str, Tensor]]:
         tgt, src, cam, mask = self._crop(batch)
+        self.model.pose_net.prior_weight = self.cfg.model.prior_weight_at(self.step)
         with torch.autocast(
             self.device.type, dtype=self.amp_dtype or torch.float32, enabled=self.amp_dtype is not None
         ):
@@ -246,6 +247,13 @@ class Trainer:
             source_pyramid=image_pyramid(src.float(), photo_sizes),
         )
         total, terms = out.total, out.terms
+        gap = getattr(self.model.pose_net, "scaffold_gap", None)
+        if self.cfg.model.scaffold and gap is not None:  # the pair network learns the prior's translation
+            terms = dict(terms)
+            weight = self.cfg.model.prior_distill * self.model.pose_net.prior_weight
+            terms["scaffold"] = weight * gap.float().abs().mean()
+            total = total + terms["scaffold"]
+            terms["total"] = total
         if self.cfg.data.still > 0:  # samples of a standing camera: sources identical to the target
             still = (src == tgt[:, None]).flatten(1).all(1)
             terms = dict(terms)
@@ -278,6 +286,8 @@ class Trainer:
         self.step += 1
         scalars = {k: float(v.detach()) for k, v in terms.items()}
         scalars["translation_norm"] = float(visuals.pop("translation_norm"))
+        if self.cfg.model.scaffold:
+            scalars["prior_weight"] = float(self.model.pose_net.prior_weight)
         return scalars, visuals
 
     # ------------------------------------------------------------------ checkpoints

@@ -46,13 +46,15 @@ def test_demo_runs_end_to_end_and_writes_a_report(tmp_path, capsys):
     models = load_models(out / "run")
     cfg = models.config
     assert (cfg.data.width, cfg.data.height, cfg.data.root, cfg.data.split) == (128, 32, str(data), "train")
-    assert cfg.preset == "default" and cfg.model.pose_head == "mean" and cfg.wrap and cfg.model.compass
+    assert cfg.preset == "default" and cfg.model.pose_head == "equivariant" and cfg.wrap and cfg.model.compass
+    assert cfg.model.antisymmetric and cfg.model.scaffold
     rows = [json.loads(line) for line in (out / "run" / "metrics.jsonl").read_text().splitlines()]
     steps = [r["step"] for r in rows]
     assert steps[0] == 1 and steps == sorted(set(steps)) and steps[-1] <= models.step
     for row in rows:
         assert all(math.isfinite(row[k]) for k in TERMS), row
-        assert row["total"] == pytest.approx(row["photometric"] + row["smooth"] + row["explain"], rel=1e-6)
+        parts = row["photometric"] + row["smooth"] + row["explain"] + row.get("scaffold", 0.0)
+        assert row["total"] == pytest.approx(parts, rel=1e-6)
         assert row["photometric"] > 0
     report = (out / "report.md").read_text()
     assert re.search(rf"\b{models.step} steps in", report)

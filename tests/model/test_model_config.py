@@ -44,7 +44,7 @@ def test_bad_configurations_are_clear_errors(tmp_path):
     with pytest.raises(ConfigError, match="key=value"):
         apply_overrides(preset("default"), ["loss.ssim_weight"])
     with pytest.raises(ConfigError, match="equivariant"):
-        apply_overrides(preset("default"), ["data.roll=true"])
+        apply_overrides(preset("improved"), ["data.roll=true"])
     with pytest.raises(ConfigError, match="preset"):
         preset("nope")
     with pytest.raises(ConfigError, match="not found"):

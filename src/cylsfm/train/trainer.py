@@ -246,20 +246,16 @@ class Trainer:
             target_pyramid=image_pyramid(tgt32, sizes),
             source_pyramid=image_pyramid(src.float(), photo_sizes),
         )
-        total, terms = out.total, out.terms
-        gap = getattr(self.model.pose_net, "scaffold_gap", None)
-        if self.cfg.model.scaffold and gap is not None:  # the pair network learns the prior's translation
-            terms = dict(terms)
-            weight = self.cfg.model.prior_distill * self.model.pose_net.prior_weight
-            terms["scaffold"] = weight * gap.float().abs().mean()
-            total = total + terms["scaffold"]
-            terms["total"] = total
+        extra: dict[str, Tensor] = {}
+        pose_net = self.model.pose_net
+        if self.cfg.model.scaffold and pose_net.scaffold_gap is not None:  # the pair net learns the prior's t
+            weight = self.cfg.model.prior_distill * pose_net.prior_weight
+            extra["scaffold"] = weight * pose_net.scaffold_gap.float().abs().mean()
         if self.cfg.data.still > 0:  # samples of a standing camera: sources identical to the target
             still = (src == tgt[:, None]).flatten(1).all(1)
-            terms = dict(terms)
-            terms["still"] = loss_cfg.still_weight * standing_still_loss(pose_vec.float(), still)
-            total = total + terms["still"]
-            terms["total"] = total
+            extra["still"] = loss_cfg.still_weight * standing_still_loss(pose_vec.float(), still)
+        total = out.total + sum(extra.values())
+        terms = {**out.terms, **extra, "total": total}
         visuals = {
             "target": tgt32[:1].detach(),
             "warped": out.warped[:1] if out.warped is not None else None,

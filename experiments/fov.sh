@@ -6,8 +6,9 @@
 #
 #   experiments/fov.sh STEPS [cylsfm train flags and key=value overrides ...]
 #
-# e.g. `experiments/fov.sh 1000 --reverse --still 0.2`. The pose network alone is compared (no
-# compass: it needs the whole circle), so that only the field of view differs between the rows.
+# e.g. `experiments/fov.sh 1000`. The pose network alone is compared (no compass: it needs the whole
+# circle). With the default recipe the full panorama gets the yaw-equivariant head and the crops the
+# paper's averaged head (the equivariant one rotates columns by their azimuths on the full circle).
 # Runs go to experiments/out/fov-DEG-STEPS (resumed when they exist); the table is printed at the end.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -15,7 +16,7 @@ steps=$1; shift
 runs=()
 for fov in 360 270 180 100; do
   name=fov-$fov-$steps
-  experiments/run.sh "$name" --max-steps "$steps" --fov "$fov" --no-compass "$@"
+  ROLL_EVAL=0 experiments/run.sh "$name" --max-steps "$steps" --fov "$fov" --no-compass "$@"
   runs+=("experiments/out/$name:${fov} degrees")
 done
 .venv/bin/python experiments/tables.py "${runs[@]}"

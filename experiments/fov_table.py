@@ -2,8 +2,9 @@
 
 Usage: ``python experiments/fov_table.py RUN_DIR[:LABEL] ...``, each RUN_DIR with the ``pose.json`` that
 ``cylsfm evaluate pose`` wrote. One row per run: snippet ATE, full-ride APE, rotation error per frame
-(all and turning steps), yaw slope on turns, a standing camera's step, the swapped-source cosine, each
-beside constant velocity of the same rides; the visual compass of the first run's (full) panoramas last.
+(all and turning steps), yaw slope on turns, a standing camera's step, the swapped-source cosine, the
+motion verdict and the depth's abs_rel (from ``depth.json``), each beside constant velocity of the same
+rides; the visual compass of the first run's (full) panoramas last.
 """
 
 from __future__ import annotations
@@ -24,10 +25,12 @@ COLUMNS = [
     "yaw slope",
     "standing/step",
     "swapped cos",
+    "measured",
+    "depth abs_rel",
 ]
 
 
-def _row(label: str, pose: dict, motion: dict) -> str:
+def _row(label: str, pose: dict, motion: dict, verdict: dict | None = None, depth: dict | None = None) -> str:
     cv = pose["baselines"]["constant_velocity"]
     cells = [
         pose["ate_mean"],
@@ -39,6 +42,8 @@ def _row(label: str, pose: dict, motion: dict) -> str:
         motion.get("yaw_slope"),
         motion.get("standing_ratio"),
         motion.get("swap_cosine"),
+        ("yes" if verdict["measured"] else "no") if verdict else None,
+        depth.get("abs_rel") if depth else None,
     ]
     return markdown_row(label, cells)
 
@@ -53,7 +58,10 @@ def main(argv: list[str]) -> None:
             continue
         pose = json.loads(f.read_text())
         first = first or pose
-        lines.append(_row(label or Path(path).name, pose, pose["motion"]["model"]))
+        d = Path(path) / "depth.json"
+        depth = json.loads(d.read_text()) if d.is_file() else None
+        motion = pose["motion"]
+        lines.append(_row(label or Path(path).name, pose, motion["model"], motion.get("verdict"), depth))
     if first is not None:
         cv = first["baselines"]["constant_velocity"]
         lines.append(

@@ -35,4 +35,6 @@ if [ -f "$run/checkpoints/latest.pt" ]; then resume=(--resume); fi
 $bin/cylsfm train --data "$data" --out "$run" --size 256x64 --no-progress "${resume[@]}" "$@"
 $bin/cylsfm evaluate depth --checkpoint "$run" --data "$data" --split test --json "$run/depth.json"
 $bin/cylsfm evaluate pose --checkpoint "$run" --data "$data" --split test --out "$run/trajectories" --json "$run/pose.json"
-$bin/cylsfm evaluate pose --checkpoint "$run" --data "$data" --split test --yaw-roll 0 --json "$run/pose_yaw.json"
+if [ "${ROLL_EVAL:-1}" = 1 ]; then  # ROLL_EVAL=0: no evaluation on rolled rides
+  $bin/cylsfm evaluate pose --checkpoint "$run" --data "$data" --split test --yaw-roll 0 --json "$run/pose_yaw.json"
+fi

@@ -46,7 +46,7 @@ def test_demo_runs_end_to_end_and_writes_a_report(tmp_path, capsys):
     models = load_models(out / "run")
     cfg = models.config
     assert (cfg.data.width, cfg.data.height, cfg.data.root, cfg.data.split) == (128, 32, str(data), "train")
-    assert cfg.preset == "default" and cfg.model.pose_head == "equivariant" and cfg.wrap and cfg.model.compass
+    assert cfg.preset == "default" and cfg.pose_head == "equivariant" and cfg.wrap and cfg.model.compass
     assert cfg.model.antisymmetric and cfg.model.scaffold
     rows = [json.loads(line) for line in (out / "run" / "metrics.jsonl").read_text().splitlines()]
     steps = [r["step"] for r in rows]

@@ -321,7 +321,7 @@ def test_slot_prior_scaffold_is_added_by_weight_and_absent_at_inference():
     from cylsfm.nn import PoseExpNet
 
     torch.manual_seed(0)
-    net = PoseExpNet(2, explainability=False, antisymmetric=True, slot_prior=True).eval()
+    net = PoseExpNet(2, explainability=False, antisymmetric=True, slot_prior=True).train()
     assert net.prior_weight == 0.0
     with torch.no_grad():
         net.slot_prior.copy_(torch.tensor([[0, 0, -1.0, 0, 0, 0], [0, 0, 1.0, 0, 0, 0]]) * 1e-3)
@@ -334,6 +334,9 @@ def test_slot_prior_scaffold_is_added_by_weight_and_absent_at_inference():
         scaffolded, _ = net(a, src)
     torch.testing.assert_close(scaffolded, 0.5 * plain + 0.5 * 10.0 * net.slot_prior[None])
     torch.testing.assert_close(net.scaffold_gap, plain[..., :3] - 10.0 * net.slot_prior[None, :, :3])
+    with torch.no_grad():  # never in inference, whatever the weight left by training
+        torch.testing.assert_close(net.eval()(a, src)[0], plain)
+    net.train()
     net.prior_weight = 0.0
     net(a, src)[0].sum().backward()
     assert net.slot_prior.grad is not None and net.slot_prior.grad.abs().max() == 0

@@ -94,10 +94,15 @@ def test_training_writes_config_logs_and_checkpoints(tiny_data, tmp_path):
 
 
 def test_resume_continues_exactly(tiny_data, tmp_path):
-    """3 + 3 steps with a resume in between give the same weights as 6 steps in one go."""
-    train(_cfg(tiny_data, max_steps=6), tmp_path / "straight", progress=False)
-    train(_cfg(tiny_data, max_steps=3), tmp_path / "split", progress=False)
-    train(_cfg(tiny_data, max_steps=6), tmp_path / "split", resume=True, progress=False)
+    """3 + 3 steps with a resume in between give the same weights as 6 steps in one go (with the scaffold
+    fading out across the resume); a run that stops before the fade's end says so."""
+    fade = {"model.prior_fade_start": 2, "model.prior_fade_end": 5}
+    train(_cfg(tiny_data, max_steps=6, **fade), tmp_path / "straight", progress=False)
+    with pytest.warns(UserWarning, match="before the slot-prior scaffold was faded out"):
+        train(_cfg(tiny_data, max_steps=3, **fade), tmp_path / "split", progress=False)
+    train(_cfg(tiny_data, max_steps=6, **fade), tmp_path / "split", resume=True, progress=False)
+    weights = [json.loads(line)["prior_weight"] for line in (tmp_path / "split/metrics.jsonl").open()]
+    assert weights == pytest.approx([1, 1, 1, 2 / 3, 1 / 3, 0])
     a, b = _weights(tmp_path / "straight"), _weights(tmp_path / "split")
     assert load_checkpoint(tmp_path / "split")["step"] == 6
     for k in a:
@@ -290,8 +295,15 @@ def test_compass_and_still_settings_are_checked():
 
     crop = apply_overrides(preset("default"), ["model.compass=true", "data.fov=180"])
     assert not build_models(crop)[1].compass  # a crop is no full panorama: no compass
-    crop = apply_overrides(preset("default"), ["model.pose_head=equivariant", "data.fov=180"])
-    assert build_models(crop)[1].pose_head == "mean"  # nor azimuths on the full circle
+    assert build_models(crop)[1].pose_head == "mean"  # "auto": nor azimuths on the full circle
+    assert build_models(preset("default"))[1].pose_head == "equivariant"
+    with pytest.raises(ConfigError, match="equivariant needs full 360-degree"):
+        apply_overrides(preset("default"), ["model.pose_head=equivariant", "data.fov=180"])
+    for bad in ("data.roll=true", "data.reverse=true"):  # a motion per slot cannot follow them
+        with pytest.raises(ConfigError, match="scaffold"):
+            apply_overrides(preset("default"), [bad])
+    with pytest.raises(ConfigError, match="adds nothing"):
+        apply_overrides(preset("default"), ["data.still=0.2"])
     with pytest.raises(ConfigError, match="still"):
         apply_overrides(preset("default"), ["data.still=1.5"])
     with pytest.raises(ConfigError, match="antisymmetric"):
@@ -313,8 +325,26 @@ def test_slot_prior_fade_schedule_and_checks():
     assert build_models(preset("improved"))[1].slot_prior is None
     plain = apply_overrides(preset("default"), ["model.antisymmetric=false"])  # the fade is then unused
     assert plain.model.prior_weight_at(0) == 0.0 and build_models(plain)[1].slot_prior is None
+    off = apply_overrides(preset("default"), ["model.prior_fade_end=0"])  # 0: off, whatever the start
+    assert not off.model.scaffold and off.model.unfinished_fade(0) is None
+    assert "faded out (step 30)" in cfg.model.unfinished_fade(29) and cfg.model.unfinished_fade(30) is None
     with pytest.raises(ConfigError, match="start <= end"):
         apply_overrides(
             preset("default"),
             ["model.antisymmetric=true", "model.prior_fade_start=40", "model.prior_fade_end=30"],
         )
+
+
+def test_saved_configurations_keep_the_settings_they_were_written_with():
+    """A run's saved configuration that predates a field gets the field's default (the setting off), not
+    today's preset: an old default-recipe checkpoint rebuilds the pose network it trained."""
+    from cylsfm.model import build_models, config_from_dict, config_to_dict
+
+    old = config_to_dict(preset("improved"))
+    old["preset"] = "default"
+    for key in ("compass", "antisymmetric", "prior_fade_start", "prior_fade_end", "prior_distill"):
+        del old["model"][key]
+    saved = config_from_dict(old, "old run", saved=True)
+    assert not saved.model.compass and not saved.model.antisymmetric and not saved.model.scaffold
+    assert saved.pose_head == "mean" and build_models(saved)[1].encoder[0][0].in_channels == 9
+    assert config_from_dict(old, "a user's file").model.antisymmetric  # user files start from the preset

@@ -48,7 +48,11 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--fov", type=float, help="train on the centred crop of this many degrees (no wrap below 360)"
     )
-    p.add_argument("--pose-head", choices=["mean", "equivariant"])
+    p.add_argument(
+        "--pose-head",
+        choices=["mean", "equivariant", "auto"],
+        help="auto (default): equivariant on full panoramas, mean on crops",
+    )
     p.add_argument(
         "--roll", action=argparse.BooleanOptionalAction, default=None, help="random yaw-roll augmentation"
     )
@@ -73,7 +77,8 @@ def _train_args(p: argparse.ArgumentParser) -> None:
         "--antisymmetric",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="pose from frame pairs, g(target, source) - g(source, target): no bias or slot prior possible",
+        help="pose from frame pairs, g(target, source) - g(source, target), trained under a fading slot "
+        "prior (default on; --no-antisymmetric: the paper's one-pass network)",
     )
     p.add_argument("--mask", help="static mask image: white = pixels to use (e.g. without the helmet)")
     p.add_argument("--split", help="split to train on (train, val, test, a split file path, or 'all')")
@@ -100,7 +105,7 @@ def _base_config(args: argparse.Namespace):
         return load_config(args.config)
     saved = Path(args.out) / "config.yaml"
     if getattr(args, "resume", False) and saved.exists():
-        return load_config(saved)
+        return load_config(saved, saved=True)
     return preset("default")
 
 

@@ -23,8 +23,7 @@ def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseExpNet]:
         n_sources=n_src,
         explainability=cfg.model.explainability,
         wrap=cfg.wrap,
-        # the equivariant head rotates each column by its azimuth on the full circle: crops get the mean head
-        pose_head=cfg.model.pose_head if cfg.wrap else "mean",
+        pose_head=cfg.pose_head,  # "auto" resolved by the field of view
         compass=cfg.model.compass and cfg.wrap,  # the compass reads full panoramas only
         antisymmetric=cfg.model.antisymmetric,
         slot_prior=cfg.model.scaffold,
@@ -53,7 +52,7 @@ def load_models(path: str | os.PathLike[str], device: str | torch.device = "cpu"
     state = load_checkpoint(path, map_location=device)
     p = Path(state["path"])
     try:
-        cfg = config_from_dict(state["config"], where=f"{p} (config)")
+        cfg = config_from_dict(state["config"], where=f"{p} (config)", saved=True)
     except ConfigError as exc:
         raise CheckpointError(str(exc)) from None
     disp, pose = build_models(cfg)

@@ -7,6 +7,7 @@ checkpoint alone rebuilds its networks and knows the image size and projection i
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ __all__ = [
     "config_to_dict",
     "load_config",
     "preset",
+    "resumed_config",
     "save_config",
 ]
 
@@ -68,11 +70,13 @@ class ModelConfig:
 
     wrap: bool = True
     explainability: bool = False
-    # "mean" (the paper's spatial average) | "equivariant" (yaw-equivariant; on full panoramas only,
-    # crops of a smaller field of view get the mean head)
+    # "mean" (the paper's spatial average) | "equivariant" (yaw-equivariant; full panoramas only: it turns
+    # each column by its azimuth on the whole circle) | "auto" (equivariant on full panoramas, mean on crops)
     pose_head: str = "mean"
     compass: bool = False  # add the visual compass's yaw to the pose (used on full panoramas only)
-    antisymmetric: bool = False  # pose from frame pairs, g(t, s) - g(s, t): no bias, no slot prior
+    antisymmetric: bool = (
+        False  # pose from frame pairs, g(t, s) - g(s, t): no bias, no slot prior once trained
+    )
     # A scaffold for the antisymmetric pose network: a learned motion per source slot (the prior that
     # the paper's head learns in its bias) carries the pose alone until step prior_fade_start, then is
     # blended out linearly until step prior_fade_end, after which the pair network alone carries the
@@ -85,9 +89,11 @@ class ModelConfig:
     prior_distill: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.pose_head not in ("mean", "equivariant"):
-            raise ConfigError(f"model.pose_head must be 'mean' or 'equivariant', got {self.pose_head!r}")
-        if not 0 <= self.prior_fade_start <= self.prior_fade_end:
+        if self.pose_head not in ("mean", "equivariant", "auto"):
+            raise ConfigError(
+                f"model.pose_head must be 'mean', 'equivariant' or 'auto', got {self.pose_head!r}"
+            )
+        if self.prior_fade_end != 0 and not 0 <= self.prior_fade_start <= self.prior_fade_end:
             raise ConfigError(
                 "model.prior_fade_start and model.prior_fade_end must satisfy 0 <= start <= end, got "
                 f"{self.prior_fade_start} and {self.prior_fade_end}"
@@ -99,6 +105,16 @@ class ModelConfig:
     def scaffold(self) -> bool:
         """Whether the pose network carries a fading slot prior (see ``prior_fade_start``)."""
         return self.antisymmetric and self.prior_fade_end > 0
+
+    def unfinished_fade(self, step: int) -> str | None:
+        """A warning for a run that stops at ``step`` before its scaffold is faded out, else ``None``."""
+        if not self.scaffold or step >= self.prior_fade_end:
+            return None
+        return (
+            f"training stopped at step {step}, before the slot-prior scaffold was faded out (step "
+            f"{self.prior_fade_end}): the saved pose network, used without the prior, never carried the "
+            "motion alone in training; train longer (or lower model.prior_fade_start/end)"
+        )
 
     def prior_weight_at(self, step: int) -> float:
         """The weight of the slot-prior scaffold at training step ``step`` (0-based): 1, a linear fade, 0."""
@@ -154,7 +170,18 @@ class TrainConfig:
             raise ConfigError(f"data.seq_length must be >= 2, got {self.data.seq_length}")
         if not 0 < self.data.fov <= 360:
             raise ConfigError(f"data.fov must be in (0, 360], got {self.data.fov}")
-        if self.data.roll and self.model.pose_head != "equivariant":
+        self._check_pose_model()
+        if not 0 <= self.data.still <= 1:
+            raise ConfigError(f"data.still must be in [0, 1], got {self.data.still}")
+
+    def _check_pose_model(self) -> None:
+        """The pose model's settings against the data's."""
+        if self.model.pose_head == "equivariant" and self.data.fov < 360:
+            raise ConfigError(
+                "model.pose_head=equivariant needs full 360-degree panoramas (data.fov = 360); "
+                "'auto' takes the paper's mean head for crops"
+            )
+        if self.data.roll and self.pose_head != "equivariant":
             raise ConfigError(
                 "data.roll (random yaw rolls) needs model.pose_head=equivariant: the paper's averaged pose "
                 "head is invariant to rolls and cannot learn ego-motion from rolled samples"
@@ -163,10 +190,19 @@ class TrainConfig:
             raise ConfigError("data.roll needs full 360-degree panoramas (data.fov = 360)")
         if self.model.antisymmetric and self.model.explainability:
             raise ConfigError(
-                "model.antisymmetric has no explainability masks: set model.explainability=false"
+                "model.antisymmetric has no explainability masks: set model.explainability=false, or "
+                "model.antisymmetric=false (--no-antisymmetric) for the paper's one-pass pose network"
             )
-        if not 0 <= self.data.still <= 1:
-            raise ConfigError(f"data.still must be in [0, 1], got {self.data.still}")
+        if self.model.scaffold and (self.data.roll or self.data.reverse):
+            raise ConfigError(
+                "the slot-prior scaffold of the antisymmetric pose network (model.prior_fade_end > 0) needs "
+                "unrolled samples in time order: a motion per slot cannot follow data.roll or data.reverse; "
+                "drop them, set model.prior_fade_end=0, or use --no-antisymmetric"
+            )
+        if self.model.antisymmetric and self.data.still > 0:
+            raise ConfigError(
+                "data.still adds nothing to model.antisymmetric: identical frames give exactly zero motion"
+            )
 
     def loss_at(self, step: int) -> LossConfig:
         """The loss configuration of training step ``step`` (0-based): plain photometric during warm-up."""
@@ -175,6 +211,13 @@ class TrainConfig:
                 self.loss, ssim_weight=0.0, min_reprojection=False, automask=False, full_resolution=False
             )
         return self.loss
+
+    @property
+    def pose_head(self) -> str:
+        """The pose head built: ``model.pose_head``, with ``auto`` resolved by the field of view."""
+        if self.model.pose_head == "auto":
+            return "equivariant" if self.data.fov >= 360 else "mean"
+        return self.model.pose_head
 
     @property
     def wrap(self) -> bool:
@@ -199,14 +242,14 @@ def _improved() -> TrainConfig:
 
 
 def _default() -> TrainConfig:
-    """The improved recipe with a pose model that measures the motion (RESULTS.md, "Is the ego-motion
-    measured?"): the visual compass's yaw plus an antisymmetric, yaw-equivariant pair network, trained
+    """The improved recipe with a pose model that measures the motion (RESULTS.md, "A pose network that
+    measures the motion"): the visual compass's yaw plus an antisymmetric, yaw-equivariant pair network, trained
     under a slot-prior scaffold that fades out between steps 300 and 800."""
     cfg = _improved()
     cfg.preset = "default"
     cfg.model.compass = True
     cfg.model.antisymmetric = True
-    cfg.model.pose_head = "equivariant"
+    cfg.model.pose_head = "auto"
     cfg.model.prior_fade_start = 300
     cfg.model.prior_fade_end = 800
     return cfg
@@ -276,9 +319,18 @@ _NESTED = {
 }
 
 
-def config_from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
-    """Rebuild a :class:`TrainConfig`; unknown keys and invalid values are errors naming ``where``."""
-    base = preset(data.get("preset", "default")) if isinstance(data, dict) else TrainConfig()
+def config_from_dict(data: dict[str, Any], where: str = "config", saved: bool = False) -> TrainConfig:
+    """Rebuild a :class:`TrainConfig`; unknown keys and invalid values are errors naming ``where``.
+
+    A user's configuration names a preset and the fields to change: missing fields take the preset's
+    values. A ``saved`` one (a checkpoint's, a run's ``config.yaml``) lists every field that existed when
+    it was written: a missing field is one added since, and takes the dataclass default (the setting
+    off), so that old runs rebuild the networks they trained, whatever the presets are today.
+    """
+    if saved and isinstance(data, dict):
+        base = TrainConfig(preset=str(data.get("preset", "default")))
+    else:
+        base = preset(data.get("preset", "default")) if isinstance(data, dict) else TrainConfig()
     merged = _merge(config_to_dict(base), data, where)
     return _build(TrainConfig, merged, where)
 
@@ -295,8 +347,9 @@ def _merge(base: dict, update: Any, where: str) -> dict:
     return out
 
 
-def load_config(path: str | os.PathLike[str]) -> TrainConfig:
-    """Read a YAML configuration (a preset name plus any fields to change)."""
+def load_config(path: str | os.PathLike[str], saved: bool = False) -> TrainConfig:
+    """Read a YAML configuration (a preset name plus any fields to change; ``saved``: a run's own
+    ``config.yaml``, see :func:`config_from_dict`)."""
     path = Path(path)
     with reading(path, ConfigError):
         text = path.read_text()
@@ -304,7 +357,7 @@ def load_config(path: str | os.PathLike[str]) -> TrainConfig:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not a valid YAML configuration ({exc})") from None
-    return config_from_dict(data or {}, where=str(path))
+    return config_from_dict(data or {}, where=str(path), saved=saved)
 
 
 def save_config(cfg: TrainConfig, path: str | os.PathLike[str]) -> None:
@@ -332,3 +385,51 @@ def apply_overrides(cfg: TrainConfig, overrides: list[str]) -> TrainConfig:
         except yaml.YAMLError as exc:
             raise ConfigError(f"override {item!r}: cannot parse the value ({exc})") from None
     return _build(TrainConfig, data, "overrides")
+
+
+#: Settings a resumed run may change: the budget, the hardware, where the data is, and how often it logs.
+#: Everything else would make the resumed run a different run; it keeps its saved value.
+RESUMABLE_KEYS = (
+    "max_steps",
+    "minutes",
+    "device",
+    "data.workers",
+    "data.root",
+    "log_every",
+    "image_every",
+    "checkpoint_every",
+    "latest_every",
+)
+
+
+def resumed_config(saved: TrainConfig, asked: TrainConfig) -> TrainConfig:
+    """The configuration of a resumed run: ``saved`` with the :data:`RESUMABLE_KEYS` of ``asked``; a
+    warning names every other setting of ``asked`` that differs and is ignored."""
+    saved_d, asked_d = _flatten(config_to_dict(saved)), _flatten(config_to_dict(asked))
+    ignored = [
+        f"{k} (kept {saved_d.get(k)!r}, asked {v!r})"
+        for k, v in asked_d.items()
+        if k not in RESUMABLE_KEYS and v != saved_d.get(k) and k != "data.vfov_h"
+    ]
+    if ignored:
+        warnings.warn(
+            "a resumed run keeps its configuration; ignored: " + ", ".join(ignored), UserWarning, stacklevel=4
+        )
+    data = config_to_dict(saved)
+    for key in RESUMABLE_KEYS:
+        *sections, name = key.split(".")
+        node = data
+        for section in sections:
+            node = node[section]
+        node[name] = asked_d[key]
+    return config_from_dict(data, where="resumed configuration", saved=True)
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out

@@ -64,7 +64,8 @@ class PoseExpNet(nn.Module):
     ``slot_prior [S, 6]`` (times a gain of 10): the motion by slot that the paper's head learns in its
     bias, here a scaffold that gives the depth network parallax from the first step while the pair
     network learns to read the motion. The pose is the blend ``(1 - w) * pair + w * prior`` with
-    ``w = prior_weight`` (an attribute, 0 unless a trainer sets it, faded to 0 during training); the pair
+    ``w = prior_weight`` (an attribute, 0 unless a trainer sets it, faded to 0 during training; in
+    ``eval()`` mode always 0); the pair
     network's translation minus the prior's (detached) is kept as ``scaffold_gap [B, S, 3]`` for the
     trainer's distillation term, which teaches the pair network the direction of the motion while the
     prior carries it. With ``prior_weight == 0`` (inference) the prediction is exactly antisymmetric.
@@ -173,7 +174,7 @@ class PoseExpNet(nn.Module):
             )
             pose = (pairs[: b * s] - pairs[b * s :]).view(b, s, 6)
             if self.slot_prior is not None:  # in the graph even at weight 0 (one set of DDP parameters)
-                w = self.prior_weight
+                w = self.prior_weight if self.training else 0.0  # never in inference
                 prior = _PRIOR_GAIN * self.slot_prior.to(pose.dtype)[None].expand_as(pose)
                 self.scaffold_gap = pose[..., :3] - prior[..., :3].detach()
                 pose = (1.0 - w) * pose + w * prior

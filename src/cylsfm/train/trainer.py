@@ -37,7 +37,7 @@ from ..geometry import Camera, pose_vec_to_mat
 from ..losses import image_pyramid, standing_still_loss, view_synthesis_loss
 from ..model.build import build_models
 from ..model.checkpoint import load_checkpoint, save_checkpoint
-from ..model.config import TrainConfig, config_from_dict, config_to_dict, save_config
+from ..model.config import TrainConfig, config_from_dict, config_to_dict, resumed_config, save_config
 from ..runtime import prefers_channels_last, progress_bar
 from .distributed import init_distributed
 from .rng import restore_rng, rng_state
@@ -76,7 +76,7 @@ class Trainer:
             if not ckpt.exists():
                 raise CylsfmError(f"{ckpt}: nothing to resume (no checkpoint in {self.run_dir})")
             state = load_checkpoint(ckpt, map_location="cpu")
-            cfg = _resumed_config(config_from_dict(state["config"], where=f"{ckpt} (config)"), cfg)
+            cfg = resumed_config(config_from_dict(state["config"], f"{ckpt} (config)", saved=True), cfg)
         self.cfg = cfg
         self.step = 0
         self._check_size()
@@ -251,6 +251,7 @@ class Trainer:
         if self.cfg.model.scaffold and pose_net.scaffold_gap is not None:  # the pair net learns the prior's t
             weight = self.cfg.model.prior_distill * pose_net.prior_weight
             extra["scaffold"] = weight * pose_net.scaffold_gap.float().abs().mean()
+            pose_net.scaffold_gap = None  # the graph is the loss's alone
         if self.cfg.data.still > 0:  # samples of a standing camera: sources identical to the target
             still = (src == tgt[:, None]).flatten(1).all(1)
             extra["still"] = loss_cfg.still_weight * standing_still_loss(pose_vec.float(), still)
@@ -383,6 +384,8 @@ class Trainer:
             self.save(keep=False)
         if self.writer:
             self.writer.flush()
+        if (note := cfg.model.unfinished_fade(self.step)) and self.dist.main:
+            warnings.warn(note, UserWarning, stacklevel=2)
         return {
             "steps": self.step,
             "stopped": stopped,
@@ -449,51 +452,3 @@ def train(
         return trainer.fit(progress=progress)
     finally:
         trainer.close()
-
-
-#: Settings a resumed run may change: the budget, the hardware, where the data is, and how often it logs.
-#: Everything else would make the resumed run a different run; it keeps its saved value.
-RESUMABLE_KEYS = (
-    "max_steps",
-    "minutes",
-    "device",
-    "data.workers",
-    "data.root",
-    "log_every",
-    "image_every",
-    "checkpoint_every",
-    "latest_every",
-)
-
-
-def _resumed_config(saved: TrainConfig, asked: TrainConfig) -> TrainConfig:
-    """The configuration of a resumed run: ``saved`` with the :data:`RESUMABLE_KEYS` of ``asked``; a
-    warning names every other setting of ``asked`` that differs and is ignored."""
-    saved_d, asked_d = _flatten(config_to_dict(saved)), _flatten(config_to_dict(asked))
-    ignored = [
-        f"{k} (kept {saved_d.get(k)!r}, asked {v!r})"
-        for k, v in asked_d.items()
-        if k not in RESUMABLE_KEYS and v != saved_d.get(k) and k != "data.vfov_h"
-    ]
-    if ignored:
-        warnings.warn(
-            "a resumed run keeps its configuration; ignored: " + ", ".join(ignored), UserWarning, stacklevel=3
-        )
-    data = config_to_dict(saved)
-    for key in RESUMABLE_KEYS:
-        *sections, name = key.split(".")
-        node = data
-        for section in sections:
-            node = node[section]
-        node[name] = asked_d[key]
-    return config_from_dict(data, where="resumed configuration")
-
-
-def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flatten(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out

@@ -74,9 +74,8 @@ class ModelConfig:
     # each column by its azimuth on the whole circle) | "auto" (equivariant on full panoramas, mean on crops)
     pose_head: str = "mean"
     compass: bool = False  # add the visual compass's yaw to the pose (used on full panoramas only)
-    antisymmetric: bool = (
-        False  # pose from frame pairs, g(t, s) - g(s, t): no bias, no slot prior once trained
-    )
+    # pose from frame pairs, g(t, s) - g(s, t): no bias, no slot prior once trained
+    antisymmetric: bool = False
     # A scaffold for the antisymmetric pose network: a learned motion per source slot (the prior that
     # the paper's head learns in its bias) carries the pose alone until step prior_fade_start, then is
     # blended out linearly until step prior_fade_end, after which the pair network alone carries the
@@ -108,7 +107,7 @@ class ModelConfig:
 
     def unfinished_fade(self, step: int) -> str | None:
         """A warning for a run that stops at ``step`` before its scaffold is faded out, else ``None``."""
-        if not self.scaffold or step >= self.prior_fade_end:
+        if self.prior_weight_at(step) == 0:
             return None
         return (
             f"training stopped at step {step}, before the slot-prior scaffold was faded out (step "

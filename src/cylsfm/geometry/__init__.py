@@ -5,6 +5,7 @@ Nothing here knows about networks or datasets.
 
 from .cameras import Camera, CameraError, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
 from .compass import column_shift, compass_yaw
+from .jacobian import projection_jacobian
 from .pose import (
     axis_angle_to_matrix,
     compose,
@@ -58,6 +59,7 @@ __all__ = [
     "pad_cat",
     "pad_for_window",
     "pose_vec_to_mat",
+    "projection_jacobian",
     "quaternion_to_matrix",
     "relative_pose",
     "relu_pad",

@@ -12,24 +12,25 @@ name; a second input of the same name becomes ``NAME-2``) the outputs are::
 subsampling). Every file is written atomically (a temporary file, then ``os.replace``), so an interrupted or
 failed run leaves complete files only; frames already written stay.
 
-Cameras (:mod:`cylsfm.predict.cameras`). Without a camera file, an input must be a full 360-degree
+Cameras (:mod:`cylsfm.model.plan`). Without a camera file, an input must be a full 360-degree
 cylindrical panorama of the training aspect ratio; its depth comes back at its own resolution. With a
 camera file (``camera.json``, see ``cylsfm camera``): a full cylindrical panorama of the training vertical
 field of view is used as it is; any other input (an equirectangular 360-degree image, a cylinder of another
 vertical field of view, a partial panorama or a pinhole photograph) is first resampled
 (:func:`cylsfm.data.convert.to_cylinder`) into the model's cylinder at the network's input size, and its
 depth (and the video preview) is at that size. Inputs that are not full panoramas are taken only when they
-cover at least :data:`~cylsfm.predict.cameras.MIN_COVERAGE` of what the network sees: so a pinhole view
+cover at least :data:`~cylsfm.model.plan.MIN_COVERAGE` of what the network sees: so a pinhole view
 only by a model trained on crops (``cylsfm train --fov``) that it covers.
 
 For a model trained on centred crops (``data.fov < 360``) the depth covers the crop the network sees.
 
-Modules: :mod:`~cylsfm.predict.inputs` (finding and reading the inputs), :mod:`~cylsfm.predict.video`
-(PyAV decoding and the preview writer), :mod:`~cylsfm.predict.cameras` (what the model takes),
-:mod:`~cylsfm.predict.run` (the loop).
+Modules: :mod:`cylsfm.data.inputs` (finding and reading the inputs), :mod:`cylsfm.data.video` (PyAV
+decoding and the preview writer), :mod:`cylsfm.model.plan` (what the model takes), :mod:`~cylsfm.predict.run`
+(the loop).
 """
 
-from .cameras import (
+from ..data.inputs import IMAGE_FILE_SUFFIXES, InputSource, discover_inputs, read_frames
+from ..model.plan import (
     ASPECT_TOLERANCE,
     DEFAULT_VFOV_H,
     MIN_COVERAGE,
@@ -39,7 +40,6 @@ from .cameras import (
     model_vfov_h,
     plan_input,
 )
-from .inputs import IMAGE_FILE_SUFFIXES, InputSource, discover_inputs, read_frames
 from .run import PredictSummary, predict
 
 __all__ = [

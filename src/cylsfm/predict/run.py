@@ -13,16 +13,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..data.convert import to_cylinder
 from ..data.format import save_depth, save_png
+from ..data.inputs import InputSource, discover_inputs, expected_frames, read_frames
+from ..data.video import FALLBACK_RATE, VideoWriter
 from ..errors import InputError
 from ..export.colorize import colorize_depth, side_by_side
 from ..geometry import Camera, load_camera
 from ..model import Predictor
+from ..model.plan import Plan, model_vfov_h, network_images, plan_input
 from ..runtime import progress_bar
-from .cameras import Plan, model_vfov_h, plan_input
-from .inputs import InputSource, discover_inputs, expected_frames, read_frames
-from .video import FALLBACK_RATE, VideoWriter
 
 __all__ = ["PredictSummary", "predict"]
 
@@ -165,22 +164,6 @@ def _run_source(
         if writer is not None:
             writer.abort()
         raise
-
-
-def network_images(batch: Sequence[np.ndarray], plan: Plan, device: torch.device) -> torch.Tensor:
-    """``uint8 [H,W,3]`` frames -> ``[B,3,H',W']`` in [0, 1] on ``device``, in ``plan.network_input``.
-
-    Frames go to the device as ``uint8`` (4x less to copy) and are converted one at a time, so that large
-    360-degree frames never sit on the device as a whole batch.
-    """
-    frames = []
-    for rgb in batch:
-        x = torch.from_numpy(np.require(rgb, np.uint8, ["C", "W"])).to(device).permute(2, 0, 1)[None].float()
-        x = x / 255
-        if plan.convert_to is not None:
-            x = to_cylinder(x, plan.camera, plan.convert_to).clamp(0, 1)
-        frames.append(x)
-    return torch.cat(frames)
 
 
 def _run_batch(

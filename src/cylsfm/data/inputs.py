@@ -1,4 +1,4 @@
-"""The inputs of ``cylsfm predict``: classifying paths as images, folders or videos, naming their outputs,
+"""The inputs of ``cylsfm predict`` and ``cylsfm odometry``: classifying paths as images, folders or videos, naming their outputs,
 and reading their frames."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data.format import image_size, load_image
 from ..errors import CylsfmError
+from .format import image_size, load_image
 from .video import probe_video, video_frames
 
 __all__ = ["IMAGE_FILE_SUFFIXES", "InputSource", "discover_inputs", "expected_frames", "read_frames"]

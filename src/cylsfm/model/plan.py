@@ -19,15 +19,17 @@ trained on centred crops (``data.fov < 360``), the network sees only the crop of
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..data.convert import to_cylinder
 from ..errors import CylsfmError
 from ..geometry import Camera, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
-from ..model import Predictor
+from .predictor import Predictor
 
 __all__ = [
     "ASPECT_TOLERANCE",
@@ -37,6 +39,7 @@ __all__ = [
     "coverage",
     "model_camera",
     "model_vfov_h",
+    "network_images",
     "plan_input",
 ]
 
@@ -170,3 +173,19 @@ def plan_input(
     if not cam.wraps:
         _checked_coverage(cam, target, predictor, str(camera_path))
     return Plan(cam, convert_to=target)
+
+
+def network_images(batch: Sequence[np.ndarray], plan: Plan, device: torch.device) -> torch.Tensor:
+    """``uint8 [H,W,3]`` frames -> ``[B,3,H',W']`` in [0, 1] on ``device``, in ``plan.network_input``.
+
+    Frames go to the device as ``uint8`` (4x less to copy) and are converted one at a time, so that large
+    360-degree frames never sit on the device as a whole batch.
+    """
+    frames = []
+    for rgb in batch:
+        x = torch.from_numpy(np.require(rgb, np.uint8, ["C", "W"])).to(device).permute(2, 0, 1)[None].float()
+        x = x / 255
+        if plan.convert_to is not None:
+            x = to_cylinder(x, plan.camera, plan.convert_to).clamp(0, 1)
+        frames.append(x)
+    return torch.cat(frames)

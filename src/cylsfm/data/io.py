@@ -94,10 +94,13 @@ def save_depth(path: PathLike, depth: np.ndarray) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def write_tum(path: PathLike, timestamps: np.ndarray | Sequence[float], c2w: np.ndarray) -> None:
+def write_tum(
+    path: PathLike, timestamps: np.ndarray | Sequence[float], c2w: np.ndarray, comments: Sequence[str] = ()
+) -> None:
     """Write camera-to-world poses ``c2w [N,4,4]`` with ``timestamps [N]`` as a TUM file, atomically.
 
-    One line per pose: ``t tx ty tz qx qy qz qw`` (translation in metres, unit quaternion, scalar last).
+    One line per pose: ``t tx ty tz qx qy qz qw`` (translation in metres, unit quaternion, scalar last),
+    after a header of ``#`` comment lines: the columns, then ``comments`` (one line each, e.g. the unit).
     """
     mats = np.asarray(c2w, dtype=np.float64)
     times = np.asarray(timestamps, dtype=np.float64).reshape(-1)
@@ -113,6 +116,7 @@ def write_tum(path: PathLike, timestamps: np.ndarray | Sequence[float], c2w: np.
         raise InputError(f"{path}: poses must be rigid transforms (orthonormal rotation, det +1)")
     tum = mat_to_tum(torch.from_numpy(mats)).numpy() if mats.shape[0] else np.zeros((0, 7))
     lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
+    lines += [f"# {line}" for c in comments for line in c.splitlines()]
     for t, row in zip(times, tum, strict=True):
         lines.append(" ".join(repr(float(v)) for v in (t, *row)))
     atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())

@@ -34,7 +34,9 @@ __all__ = [
     "relative_positions",
     "snippet_ate",
     "snippet_ates",
+    "step_from_window",
     "trajectory_metrics",
+    "window_centre",
 ]
 
 #: Full-trajectory measures (metres, degrees) reported per sequence and averaged.
@@ -134,8 +136,24 @@ def chain_poses(steps: np.ndarray) -> np.ndarray:
     return out
 
 
-def _window_centre(j: int, m: int, k: int) -> int:
+def window_centre(j: int, m: int, k: int) -> int:
+    """The centre of the window that gives step ``j`` of a chain of ``m`` frames (windows of ``2k+1``): ``j``
+    itself, or the nearest full window near the ends."""
     return min(max(j, k), m - 1 - k)
+
+
+def step_from_window(window: np.ndarray, c: int, j: int, k: int) -> np.ndarray:
+    """``T_{j->j+1}`` ``[4,4]`` from the window centred on ``c`` (``window``: ``T_{c->src}`` ``[2k,4,4]``,
+    sources ``c-k .. c+k`` without ``c`` in time order; ``c-k <= j < j+1 <= c+k``)."""
+    eye = np.eye(4)
+
+    def t_from(f: int) -> np.ndarray:  # T_{c->f}
+        if f == c:
+            return eye
+        o = f - c
+        return np.asarray(window[o + k if o < 0 else o + k - 1], dtype=np.float64)
+
+    return t_from(j + 1) @ invert(t_from(j))
 
 
 def consecutive_from_windows(windows: dict[int, np.ndarray], m: int, seq_length: int) -> np.ndarray:
@@ -149,23 +167,15 @@ def consecutive_from_windows(windows: dict[int, np.ndarray], m: int, seq_length:
 
     Returns:
         ``T_{j->j+1}`` from the window centred on ``j``, or on the nearest full window near the ends
-        (see the module docstring).
+        (:func:`window_centre`).
     """
     k = (seq_length - 1) // 2
     if m < seq_length:
         raise InputError(f"{m} frames are fewer than one window of {seq_length}")
-    eye = np.eye(4)
-
-    def t_from(c: int, f: int) -> np.ndarray:  # T_{c->f}
-        if f == c:
-            return eye
-        o = f - c
-        return np.asarray(windows[c][o + k if o < 0 else o + k - 1], dtype=np.float64)
-
     out = np.empty((m - 1, 4, 4))
     for j in range(m - 1):
-        c = _window_centre(j, m, k)
-        out[j] = t_from(c, j + 1) @ invert(t_from(c, j))
+        c = window_centre(j, m, k)
+        out[j] = step_from_window(windows[c], c, j, k)
     return out
 
 

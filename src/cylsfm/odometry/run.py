@@ -1,0 +1,363 @@
+"""``cylsfm odometry``: a whole ride's trajectory from a trained model (see :mod:`cylsfm.odometry`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .. import __version__
+from ..atomic import atomic_write_text
+from ..data.format import load_depth, save_depth
+from ..data.io import write_tum
+from ..errors import CylsfmError, InputError
+from ..evaluate.pose_metrics import chain_poses
+from ..geometry import Camera, load_camera
+from ..model import Predictor
+from ..model.plan import model_vfov_h, network_images, plan_input
+from ..runtime import progress_bar
+from .align import AlignConfig
+from .frames import Ride, depth_files, open_ride
+from .ground import metric_scale
+from .report import ride_metrics, top_view
+from .state import STATE_FILE, State, fingerprint
+from .track import Tracker, network_size
+
+__all__ = ["OdometryResult", "odometry"]
+
+#: Frames read and processed between two saves of the state.
+CHUNK = 32
+#: Where depth maps wait in network units until the scale to metres is known.
+RAW_DEPTH = ".odometry-depth"
+
+
+@dataclass
+class OdometryResult:
+    """What :func:`odometry` wrote and measured.
+
+    Attributes:
+        trajectory: the TUM file (``OUT/trajectory.txt``).
+        c2w: the camera-to-world poses ``[M,4,4]`` written there; ``times`` ``[M]``, ``frames`` their names.
+        unit: ``"network units"`` or ``"metres"``; ``metres_per_unit`` the scale applied (``None``: none).
+        metrics: measures against the ground truth (``None`` without it), as in ``OUT/metrics.json``.
+        timings: seconds per part of the work; ``seconds`` in all.
+    """
+
+    trajectory: Path
+    c2w: np.ndarray
+    times: np.ndarray
+    frames: list[str]
+    unit: str
+    metres_per_unit: float | None
+    metrics: dict[str, Any] | None
+    timings: dict[str, float] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def _checked(refine: bool, camera_height: float | None, batch_size: int, depth_from: Any) -> None:
+    if batch_size < 1:
+        raise InputError(f"batch_size must be at least 1, got {batch_size}")
+    if camera_height is not None and not (math.isfinite(camera_height) and camera_height > 0):
+        raise InputError(f"camera_height must be a positive number of metres, got {camera_height}")
+    if depth_from is not None and not refine:
+        raise InputError("depth_from gives the refinement its depth: it needs refine=True (--refine)")
+
+
+def odometry(
+    input: str | os.PathLike[str],
+    checkpoint: str | os.PathLike[str] | Predictor,
+    out: str | os.PathLike[str],
+    camera: str | os.PathLike[str] | Camera | None = None,
+    refine: bool = False,
+    depth_from: str | os.PathLike[str] | None = None,
+    camera_height: float | None = None,
+    save_depth_maps: bool = False,
+    fps: float | None = None,
+    stride: int = 1,
+    batch_size: int = 8,
+    device: str = "auto",
+    align_config: AlignConfig | None = None,
+    progress: bool = True,
+) -> OdometryResult:
+    """The trajectory of a whole ride: the pose network's steps chained, optionally refined by direct
+    photometric alignment; see :mod:`cylsfm.odometry` for the method and the files written.
+
+    Args:
+        input: a video file, a folder of frames, or a dataset sequence directory.
+        checkpoint: a checkpoint file, a run directory or a ready predictor.
+        out: the output directory (created; a killed run in it is continued).
+        camera: the frames' camera (``camera.json`` or a camera); ``None``: the sequence's own, or full
+            cylindrical panoramas of the model's aspect ratio.
+        refine: refine every step by direct alignment.
+        depth_from: a dataset whose ground-truth depth the refinement uses instead of the network's.
+        camera_height: the camera's height above the ground in metres: scale the result to metres.
+        save_depth_maps: write each frame's depth to ``OUT/depth/FRAME.npy``.
+        fps: take about this many frames a second from a video; ``stride``: every n-th frame.
+        batch_size: windows and pairs per call; ``device``: ``auto``, ``cpu``, ``cuda``, ``cuda:N``.
+        align_config: the refinement's settings; ``progress``: show a progress bar.
+
+    Raises:
+        CylsfmError: an input, camera, checkpoint or dataset problem, naming the file.
+    """
+    started = time.perf_counter()
+    _checked(refine, camera_height, batch_size, depth_from)
+    ride = open_ride(input, fps, stride)
+    predictor = (
+        checkpoint if isinstance(checkpoint, Predictor) else Predictor.from_checkpoint(checkpoint, device)
+    )
+    cam = load_camera(camera) if isinstance(camera, str | os.PathLike) else camera
+    cam_name = (
+        str(camera) if isinstance(camera, str | os.PathLike) else ("the given camera" if camera else None)
+    )
+    if cam is None and ride.camera is not None:
+        cam, cam_name = ride.camera, str(ride.path / "camera.json")
+    plan = plan_input(ride.path, ride.size, predictor, model_vfov_h(predictor.config), cam, cam_name)
+    net_cam = plan.network_input.resized(*predictor.size)
+    if depth_from is not None and plan.convert_to is not None:
+        raise CylsfmError(
+            f"{ride.path}: ground-truth depth needs frames the model takes as they are (no conversion)"
+        )
+    config = align_config or AlignConfig()
+    depths = depth_files(depth_from, ride) if depth_from is not None else None
+    settings = {
+        "input": str(Path(ride.path).resolve()),
+        "checkpoint": _checkpoint_id(checkpoint),
+        "camera": plan.network_input.to_dict(),
+        "refine": refine,
+        "depth_from": str(Path(depth_from).resolve()) if depth_from is not None else None,
+        "fps": fps,
+        "stride": stride,
+        "depth_maps": save_depth_maps,
+        # depth files are written in network units, or scaled to metres at the end (kept apart till then)
+        "depth_scale": camera_height if save_depth_maps else None,
+        "align": asdict(config),
+        "version": __version__,
+    }
+    dest = Path(out)
+    dest.mkdir(parents=True, exist_ok=True)
+    state = State.load(dest / STATE_FILE, fingerprint(settings)) or State(fingerprint(settings))
+    tracker = Tracker(
+        predictor,
+        net_cam,
+        state,
+        refine,
+        config,
+        batch_size,
+        depth_of=_depth_reader(depths, predictor, net_cam) if depths is not None else None,
+        on_depth=_depth_writer(dest / (RAW_DEPTH if camera_height else "depth"), state)
+        if save_depth_maps
+        else None,
+    )
+    if not state.finished:
+        _track(ride, plan, predictor, tracker, state, dest, progress)
+    return _finish(ride, state, dest, tracker, camera_height, save_depth_maps, refine, depths, started)
+
+
+def _checkpoint_id(checkpoint: Any) -> str:
+    if isinstance(checkpoint, Predictor):
+        return f"predictor {id(checkpoint)}"
+    p = Path(checkpoint).resolve()
+    f = p / "checkpoints" / "latest.pt" if p.is_dir() else p
+    stat = f.stat() if f.exists() else None
+    return f"{p} {stat.st_size if stat else 0} {stat.st_mtime_ns if stat else 0}"
+
+
+def _depth_reader(files: list[Path], predictor: Predictor, camera: Camera):
+    """Ground-truth depth of frame ``i`` at the view's size (area-averaged as disparity)."""
+    view = predictor.network_camera(camera)
+    win = predictor.window(camera)
+
+    def read(i: int) -> torch.Tensor:
+        d = torch.from_numpy(load_depth(files[i]))[None, None]
+        ok = (d > 0).float()
+        disp = torch.where(d > 0, 1.0 / d.clamp(min=1e-12), torch.zeros_like(d))
+        size = (camera.height, camera.width)
+        disp, ok = (torch.nn.functional.interpolate(x, size=size, mode="area") for x in (disp, ok))
+        if win is not None:
+            disp, ok = disp[..., win[0] : win[1]], ok[..., win[0] : win[1]]
+        out = torch.where(ok > 0.5, ok / disp.clamp(min=1e-12), torch.zeros_like(disp))
+        assert out.shape[-2:] == (view.height, view.width)
+        return out[0]
+
+    return read
+
+
+def _depth_writer(folder: Path, state: State):
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def write(indices: list[int], depth: torch.Tensor) -> None:
+        for i, d in zip(indices, depth, strict=True):
+            save_depth(folder / f"{state.stems[i]}.npy", d[0].cpu().numpy())
+
+    return write
+
+
+def _track(
+    ride: Ride, plan: Any, predictor: Predictor, tracker: Tracker, state: State, dest: Path, progress: bool
+) -> None:
+    """Read the ride in chunks, push them through the tracker, save the state after each."""
+    bar = progress_bar(total=ride.frames or None, desc="odometry", unit="frame", enabled=progress, leave=True)
+    bar.update(state.next_frame)
+    chunk: list[tuple[int, np.ndarray]] = []
+
+    def flush() -> None:
+        t = time.perf_counter()
+        images = network_size(
+            network_images([rgb for _, rgb in chunk], plan, predictor.device), predictor.size
+        )
+        tracker.times.add("frames to the network's size", t)
+        tracker.push([i for i, _ in chunk], images)
+        state.save(dest / STATE_FILE)
+        bar.update(len(chunk))
+        chunk.clear()
+
+    t = time.perf_counter()
+    try:
+        for i, stem, when, rgb in ride.read(start=state.next_frame):
+            if i < state.next_frame:
+                continue
+            if rgb is None:  # pragma: no cover - read() decodes every frame from start on
+                raise CylsfmError(f"{ride.path}: frame {stem} was not decoded")
+            state.stems.append(stem)
+            state.times.append(when)
+            chunk.append((i, rgb))
+            t = tracker.times.add("decoding", t)
+            if len(chunk) >= CHUNK:
+                flush()
+            t = time.perf_counter()
+        if chunk:
+            flush()
+    finally:
+        bar.close()
+    m = state.next_frame
+    need = int(predictor.config.data.seq_length)
+    if m < need:
+        raise CylsfmError(f"{ride.path}: {m} frames; a trajectory needs at least {need}")
+    tracker.finish(m)
+    state.finished = True
+    state.save(dest / STATE_FILE)
+
+
+def _finish(
+    ride: Ride,
+    state: State,
+    dest: Path,
+    tracker: Tracker,
+    camera_height: float | None,
+    save_depth_maps: bool,
+    refine: bool,
+    depths: list[Path] | None,
+    started: float,
+) -> OdometryResult:
+    """Scale, chain, and write the trajectory, the plot, the measures and the summary."""
+    steps = np.stack(state.refined if refine else state.net)
+    unit, scale = ("metres (ground-truth depth)", None) if depths is not None else ("network units", None)
+    comments = []
+    if camera_height is not None:
+        scale, used = metric_scale(np.asarray(state.heights), camera_height)
+        steps = steps.copy()
+        steps[:, :3, 3] *= scale
+        unit = "metres"
+        comments.append(
+            f"unit: metres (camera height {camera_height:g} m over the ground fitted in {used} frames: "
+            f"{scale:.6g} m per network unit)"
+        )
+        if save_depth_maps:
+            _scaled_depth(dest, state, scale)
+    else:
+        comments.append(
+            f"unit: {unit}" + ("" if depths is not None else " (give the camera height for metres)")
+        )
+    comments.append(
+        f"cylsfm {__version__} odometry of {ride.path}" + (", refined by direct alignment" if refine else "")
+    )
+    c2w = chain_poses(steps)
+    times = np.asarray(state.times)
+    write_tum(dest / "trajectory.txt", times, c2w, comments)
+    if refine:
+        write_tum(
+            dest / "trajectory_network.txt",
+            times,
+            chain_poses(np.stack(state.net)),
+            ["the pose network alone"],
+        )
+    metrics, gt = _measure(ride, state, refine)
+    top_view(
+        dest / "trajectory.png",
+        c2w,
+        "m" if scale or depths is not None else "network units",
+        gt,
+        metrics[1] if metrics else {},
+    )
+    seconds = time.perf_counter() - started
+    summary = {
+        "input": str(ride.path),
+        "frames": len(c2w),
+        "unit": unit,
+        "metres_per_unit": scale,
+        "refined": refine,
+        "seconds": seconds,
+        "frames_per_second": len(c2w) / seconds if seconds > 0 else None,
+        "timings": tracker.times.parts,
+        "refinement": _refine_stats(state) if refine else None,
+    }
+    atomic_write_text(dest / "odometry.json", json.dumps(summary, indent=2) + "\n")
+    if metrics:
+        atomic_write_text(dest / "metrics.json", json.dumps(metrics[0], indent=2) + "\n")
+    return OdometryResult(
+        dest / "trajectory.txt",
+        c2w,
+        times,
+        list(state.stems),
+        unit,
+        scale,
+        metrics[0] if metrics else None,
+        tracker.times.parts,
+        seconds,
+    )
+
+
+def _refine_stats(state: State) -> dict[str, float]:
+    cost = np.asarray(state.cost)
+    return {
+        "start_cost_mean": float(cost[:, 0].mean()),
+        "cost_mean": float(cost[:, 1].mean()),
+        "compass_start_fraction": float((cost[:, 2] == 1).mean()),
+        "valid_fraction_mean": float(cost[:, 3].mean()),
+    }
+
+
+def _measure(ride: Ride, state: State, refine: bool):
+    truth = ride.ground_truth()
+    if truth is None:
+        return None, None
+    times, gt = truth
+    if len(gt) != len(state.stems):
+        return None, None
+    steps = {
+        "refined" if refine else "network": np.stack(state.refined) if refine else np.stack(state.net),
+        "network": np.stack(state.net),
+        "compass": np.stack(state.compass),
+    }
+    return ride_metrics(times, gt, steps), gt
+
+
+def _scaled_depth(dest: Path, state: State, scale: float) -> None:
+    """``OUT/depth/FRAME.npy`` in metres from the maps in network units (idempotent; the raw maps are
+    removed once every scaled one is written)."""
+    raw, folder = dest / RAW_DEPTH, dest / "depth"
+    if not state.rescaled:
+        folder.mkdir(parents=True, exist_ok=True)
+        for stem in state.stems:
+            save_depth(folder / f"{stem}.npy", load_depth(raw / f"{stem}.npy") * np.float32(scale))
+        state.rescaled = 1
+        state.save(dest / STATE_FILE)
+    shutil.rmtree(raw, ignore_errors=True)

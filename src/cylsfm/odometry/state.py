@@ -1,0 +1,107 @@
+"""What a run of :func:`cylsfm.odometry` has done so far, saved so that a killed run continues.
+
+The state is one ``.npz`` file (NumPy arrays only, read with ``allow_pickle=False``) written atomically
+after every chunk of frames: the network's windows and steps, the refined steps, the per-frame ground
+heights, and the last few frames and depths that the next steps still need. It carries a fingerprint of
+everything that changes the result (input, checkpoint, options); a state with another fingerprint is
+not continued, the run starts over.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..atomic import atomic_write_bytes
+
+__all__ = ["STATE_FILE", "State", "fingerprint"]
+
+#: The state's file name in the output directory.
+STATE_FILE = ".odometry-state.npz"
+
+
+def fingerprint(settings: dict[str, Any]) -> str:
+    """A short digest of the settings that determine a run's result (JSON-able values)."""
+    text = json.dumps(settings, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def _stack(rows: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
+    return np.stack(rows) if rows else np.zeros((0, *shape))
+
+
+@dataclass
+class State:
+    """A run's progress. Lists grow frame by frame (``stems``, ``times``, ``heights``), window by window
+    (``windows``: ``[S,4,4]`` per centre, centres ``k, k+1, ...``) and step by step (``net``, ``refined``,
+    ``compass``: ``T_{j->j+1}`` ``[4,4]``; ``cost``: ``(start cost, final cost, start, valid)``)."""
+
+    key: str
+    stems: list[str] = field(default_factory=list)
+    times: list[float] = field(default_factory=list)
+    heights: list[float] = field(default_factory=list)
+    windows: list[np.ndarray] = field(default_factory=list)
+    net: list[np.ndarray] = field(default_factory=list)
+    refined: list[np.ndarray] = field(default_factory=list)
+    compass: list[np.ndarray] = field(default_factory=list)
+    cost: list[np.ndarray] = field(default_factory=list)
+    #: the frames still needed, by index: network-size images ``[3,H,W]`` and view depths ``[1,h,w]``
+    tail_index: list[int] = field(default_factory=list)
+    tail_images: list[np.ndarray] = field(default_factory=list)
+    tail_depths: list[np.ndarray] = field(default_factory=list)
+    finished: bool = False
+    rescaled: int = 0  # 1: the depth files in metres are all written
+
+    @property
+    def next_frame(self) -> int:
+        return len(self.stems)
+
+    def save(self, path: Path) -> None:
+        """Write atomically to ``path``."""
+        arrays = {
+            "key": np.array(self.key),
+            "stems": np.array(self.stems, dtype=str),
+            "times": np.array(self.times, dtype=np.float64),
+            "heights": np.array(self.heights, dtype=np.float64),
+            "windows": _stack(self.windows, (0, 4, 4)),
+            "net": _stack(self.net, (4, 4)),
+            "refined": _stack(self.refined, (4, 4)),
+            "compass": _stack(self.compass, (4, 4)),
+            "cost": _stack(self.cost, (4,)),
+            "tail_index": np.array(self.tail_index, dtype=np.int64),
+            "tail_images": _stack(self.tail_images, (0, 0, 0)).astype(np.float32),
+            "tail_depths": _stack(self.tail_depths, (0, 0, 0)).astype(np.float32),
+            "finished": np.array(self.finished),
+            "rescaled": np.array(self.rescaled),
+        }
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        atomic_write_bytes(path, buf.getvalue())
+
+    @classmethod
+    def load(cls, path: Path, key: str) -> State | None:
+        """The saved state at ``path`` when it exists, reads, and has fingerprint ``key``; else ``None``."""
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if str(z["key"]) != key:
+                    return None
+                state = cls(key)
+                state.stems = [str(s) for s in z["stems"]]
+                state.times = [float(t) for t in z["times"]]
+                state.heights = [float(h) for h in z["heights"]]
+                for name in ("windows", "net", "refined", "compass", "cost", "tail_images", "tail_depths"):
+                    setattr(state, name, list(z[name]))
+                state.tail_index = [int(i) for i in z["tail_index"]]
+                state.finished = bool(z["finished"])
+                state.rescaled = int(z["rescaled"])
+        except (OSError, ValueError, KeyError):
+            return None  # unreadable or from another version: start over
+        return state

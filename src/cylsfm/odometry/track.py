@@ -1,0 +1,215 @@
+"""The frame-by-frame work of :func:`cylsfm.odometry`: depth for every frame, the pose network over every
+window, each consecutive step from its window, the visual compass's yaw, and the refinement.
+
+Frames arrive in chunks (:meth:`Tracker.push`); the tracker keeps only the few frames the next steps
+still need, and records everything in a :class:`~cylsfm.odometry.state.State`, so that a run can stop
+after any chunk and continue from it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..evaluate.pose_metrics import step_from_window, window_centre
+from ..geometry import Camera, compass_yaw, yaw_matrix
+from ..model import Predictor
+from .align import AlignConfig, align
+from .ground import ground_height
+from .state import State
+
+__all__ = ["Timings", "Tracker"]
+
+#: ``(indices, network-size images [B,3,H,W], view depths [B,1,h,w])`` -> written depth files.
+DepthSink = Callable[[list[int], Tensor], None]
+
+
+@dataclass
+class Timings:
+    """Seconds spent in each part of the work."""
+
+    parts: dict[str, float] = field(default_factory=dict)
+
+    def add(self, name: str, since: float) -> float:
+        now = time.perf_counter()
+        self.parts[name] = self.parts.get(name, 0.0) + now - since
+        return now
+
+
+class Tracker:
+    """Depth, windows, steps and refinement over a stream of frames.
+
+    Args:
+        predictor: the networks.
+        camera: the camera of the network-size frames given to :meth:`push` (``predictor.size``).
+        state: where the results go (a new or a loaded state).
+        refine: refine each step by :func:`~cylsfm.odometry.align.align`.
+        align_config: its settings.
+        batch_size: windows / pairs per call.
+        depth_of: ground-truth depth for frames by index (``[1,h,w]`` at the view's size), or ``None``
+            for the network's depth.
+        on_depth: called with each chunk's indices and view depths (to write depth files).
+    """
+
+    def __init__(
+        self,
+        predictor: Predictor,
+        camera: Camera,
+        state: State,
+        refine: bool,
+        align_config: AlignConfig,
+        batch_size: int,
+        depth_of: Callable[[int], Tensor] | None = None,
+        on_depth: DepthSink | None = None,
+    ) -> None:
+        self.p = predictor
+        self.camera = camera
+        self.view = predictor.network_camera(camera)
+        self.window = predictor.window(camera)
+        self.state = state
+        self.refine = refine
+        self.align_config = align_config
+        self.batch = batch_size
+        self.depth_of = depth_of
+        self.on_depth = on_depth
+        self.k = (int(predictor.config.data.seq_length) - 1) // 2
+        self.times = Timings()
+        self.images: dict[int, Tensor] = {}
+        self.depths: dict[int, Tensor] = {}
+        for i, im, d in zip(state.tail_index, state.tail_images, state.tail_depths, strict=True):
+            self.images[i] = torch.from_numpy(np.asarray(im, dtype=np.float32))
+            self.depths[i] = torch.from_numpy(np.asarray(d, dtype=np.float32))
+
+    # ------------------------------------------------------------------ the chunks
+    def push(self, indices: list[int], images: Tensor) -> None:
+        """Add frames ``indices`` (consecutive, the next ones) with their network-size images ``[B,3,H,W]``."""
+        t = time.perf_counter()
+        depth = self._depth(indices, images)
+        t = self.times.add("depth", t)
+        self.state.heights += ground_height(depth, self.view).tolist()
+        if self.on_depth is not None:
+            self.on_depth(indices, depth)
+        t = self.times.add("ground, depth files", t)
+        for i, im, d in zip(indices, images.cpu(), depth.cpu(), strict=True):
+            self.images[i], self.depths[i] = im, d
+        last = indices[-1]
+        self._windows(last - self.k)
+        self._steps(lambda j: max(j, self.k) <= last - self.k and j + 1 <= last, last + 1)
+        self._forget()
+
+    def finish(self, m: int) -> None:
+        """Compute the last steps of a ride of ``m`` frames (its final windows are known now)."""
+        self._steps(lambda j: j + 1 < m, m)
+        self._forget(all_frames=True)
+
+    # ------------------------------------------------------------------ the parts
+    def _depth(self, indices: list[int], images: Tensor) -> Tensor:
+        if self.depth_of is not None:
+            return torch.stack([self.depth_of(i) for i in indices])
+        with torch.inference_mode():
+            return self.p.depth(images, self.camera).float().clone()
+
+    def _windows(self, last_centre: int) -> None:
+        """The pose network on every window whose centre is at most ``last_centre``."""
+        k, st = self.k, self.state
+        centres = list(range(k + len(st.windows), last_centre + 1))
+        t = time.perf_counter()
+        for n in range(0, len(centres), self.batch):
+            chunk = centres[n : n + self.batch]
+            tgt = torch.stack([self.images[c] for c in chunk])
+            src = torch.stack(
+                [torch.stack([self.images[f] for f in range(c - k, c + k + 1) if f != c]) for c in chunk]
+            )
+            with torch.inference_mode():
+                rel = self.p.poses(tgt, src, self.camera).double().cpu().numpy()
+            st.windows += list(rel)
+        self.times.add("pose network", t)
+
+    def _view(self, x: Tensor) -> Tensor:
+        return x if self.window is None else x[..., self.window[0] : self.window[1]]
+
+    def _steps(self, ready: Callable[[int], bool], m: int) -> None:
+        """Every step ``j`` not yet done for which ``ready(j)``, on a chain of ``m`` frames (so far)."""
+        st, k = self.state, self.k
+        todo = []
+        j = len(st.net)
+        while ready(j) and j + 1 < m:
+            todo.append(j)
+            j += 1
+        for n in range(0, len(todo), self.batch):
+            chunk = todo[n : n + self.batch]
+            nets = []
+            for j in chunk:
+                c = window_centre(j, m, k)
+                nets.append(step_from_window(st.windows[c - k], c, j, k))
+            self._pairs(chunk, np.stack(nets))
+
+    def _pairs(self, chunk: list[int], nets: np.ndarray) -> None:
+        st = self.state
+        t = time.perf_counter()
+        tgt = self._view(torch.stack([self.images[j] for j in chunk]))
+        src = self._view(torch.stack([self.images[j + 1] for j in chunk]))
+        net = torch.from_numpy(nets)
+        comp = net.clone()
+        if self.view.wraps:
+            comp[:, :3, :3] = yaw_matrix(compass_yaw(tgt, src), dtype=torch.float64)
+        t = self.times.add("compass", t)
+        st.net += list(nets)
+        st.compass += list(comp.numpy())
+        if not self.refine:
+            return
+        depth = torch.stack([self.depths[j] for j in chunk])
+        init = self._rescaled(chunk, net)
+        cands = init[:, None]
+        if self.view.wraps:  # the compass's yaw with the network's translation
+            turned = init.clone()
+            turned[:, :3, :3] = comp[:, :3, :3]
+            cands = torch.stack((init, turned), 1)
+        res = align(tgt, src, depth, cands, self.view, config=self.align_config)
+        st.refined += list(res.poses.cpu().numpy())
+        st.cost += list(
+            torch.stack((res.start_cost, res.cost, res.start.double(), res.valid.double()), 1).numpy()
+        )
+        self.times.add("refinement", t)
+
+    def _rescaled(self, chunk: list[int], net: Tensor) -> Tensor:
+        """The network's steps with their translation brought to the unit of the depth used (the same unit
+        unless the depth is ground truth: then by the ratio of the median depths)."""
+        if self.depth_of is None:
+            return net
+        with torch.inference_mode():
+            own = self.p.depth(torch.stack([self.images[j] for j in chunk]), self.camera).float()
+        out = net.clone()
+        for b, j in enumerate(chunk):
+            gt = self.depths[j]
+            ratio = gt[gt > 0].median() / own[b][own[b] > 0].median()
+            out[b, :3, 3] *= float(ratio)
+        return out
+
+    def _forget(self, all_frames: bool = False) -> None:
+        """Drop the frames no later step or window needs, and record the rest in the state."""
+        st = self.state
+        keep_from = min(
+            len(st.net), len(st.windows)
+        )  # the next step's target / the next window's first frame
+        if all_frames:
+            keep_from = max(self.images, default=0) + 1
+        for i in [i for i in self.images if i < keep_from]:
+            del self.images[i], self.depths[i]
+        st.tail_index = sorted(self.images)
+        st.tail_images = [self.images[i].numpy() for i in st.tail_index]
+        st.tail_depths = [self.depths[i].numpy() for i in st.tail_index]
+
+
+def network_size(images: Tensor, size: tuple[int, int]) -> Tensor:
+    """``[B,3,H,W]`` -> the network's size ``(W, H)`` by area averaging (as the predictor resizes)."""
+    w, h = size
+    if images.shape[-2:] == (h, w):
+        return images
+    return F.interpolate(images, size=(h, w), mode="area")

@@ -106,6 +106,7 @@ class _Linear:
     r: Tensor  # [B,1,h,w]
     jac: Tensor  # [B,6,h,w]
     valid: Tensor  # [B,1,h,w] bool
+    usable: Tensor  # [B] the number of target pixels with a depth (valid or not at this pose)
 
 
 def _grey(images: Tensor) -> Tensor:
@@ -168,7 +169,7 @@ def _linearize(lv: _Level, pose: Tensor) -> _Linear:
     gx, gy, gz = g.unbind(1)
     rot = torch.stack((py * gz - pz * gy, pz * gx - px * gz, px * gy - py * gx), 1)  # points x g
     jac = torch.cat((g, rot), 1)
-    return _Linear(r, jac, valid)
+    return _Linear(r, jac, valid, lv.has_depth.flatten(1).sum(1))
 
 
 def _scale(lin: _Linear) -> Tensor:
@@ -179,13 +180,16 @@ def _scale(lin: _Linear) -> Tensor:
 
 
 def _cost(lin: _Linear, k: Tensor) -> Tensor:
-    """Mean Huber cost over the valid pixels ``[B]``; ``k [B]`` the thresholds."""
+    """Mean Huber cost ``[B]`` over the target pixels with a depth (``k [B]``: the thresholds). A pixel whose
+    point leaves the source's view costs as much as a residual of two thresholds: were it free, a pose
+    that pushes the worst-fitting pixels out of the view would look better than the true one."""
     a = lin.r.abs()
     kk = k.reshape(-1, 1, 1, 1)
     rho = torch.where(a <= kk, 0.5 * a * a, kk * (a - 0.5 * kk))
-    n = lin.valid.flatten(1).sum(1).clamp(min=1)
-    cost = (rho * lin.valid).flatten(1).sum(1) / n
-    return torch.where(lin.valid.flatten(1).any(1), cost, torch.full_like(cost, float("inf")))
+    n_valid = lin.valid.flatten(1).sum(1)
+    lost = (lin.usable - n_valid).clamp(min=0) * 1.5 * k * k
+    cost = ((rho * lin.valid).flatten(1).sum(1) + lost) / lin.usable.clamp(min=1)
+    return torch.where(n_valid > 0, cost, torch.full_like(cost, float("inf")))
 
 
 def _exp(step: Tensor) -> Tensor:
@@ -225,6 +229,7 @@ def _pick(lv: _Level, poses: list[Tensor]) -> tuple[Tensor, Tensor, Tensor, _Lin
         torch.stack([x.r for x in lins])[best, b],
         torch.stack([x.jac for x in lins])[best, b],
         torch.stack([x.valid for x in lins])[best, b],
+        lins[0].usable,
     )
     return pose, best, costs[best, b], lin, k
 
@@ -244,6 +249,7 @@ def _lm(lv: _Level, pose: Tensor, lin: _Linear, cost: Tensor, k: Tensor, config:
             torch.where(sel, cand_lin.r, lin.r),
             torch.where(sel, cand_lin.jac, lin.jac),
             torch.where(sel, cand_lin.valid, lin.valid),
+            lin.usable,
         )
         cost = torch.where(better, cand_cost, cost)
     return pose, cost, lin

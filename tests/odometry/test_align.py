@@ -45,7 +45,9 @@ def _pair(camera, target_c2w, source_c2w):
 def test_true_depth_recovers_the_pose_from_a_step_forward_guess(camera, rot_tol, dir_tol):
     # the target looks across the seam (yaw 180 degrees: the seam is straight ahead on the panorama)
     target = make_pose(0.0, 0.0, 0.0, yaw_deg=180.0 if camera.wraps else 10.0)
-    source = make_pose(0.25, 0.05, -0.35 if camera.wraps else 0.35, yaw_deg=(180.0 if camera.wraps else 10.0) + 4.0)
+    source = make_pose(
+        0.25, 0.05, -0.35 if camera.wraps else 0.35, yaw_deg=(180.0 if camera.wraps else 10.0) + 4.0
+    )
     tgt, src, depth, true = _pair(camera, target, source)
     guess = torch.eye(4, dtype=torch.float64)[None].clone()
     guess[0, 2, 3] = -0.3  # "one usual step forward", no turn
@@ -62,7 +64,9 @@ def test_true_depth_recovers_the_pose_from_a_step_forward_guess(camera, rot_tol,
 def test_the_seam_is_crossed():
     """With wrapping every column is compared, also those whose points move across the seam."""
     cam = CylindricalCamera.full(160, 40)
-    tgt, src, depth, true = _pair(cam, make_pose(0, 0, 0, yaw_deg=180.0), make_pose(0.1, 0, -0.3, yaw_deg=184.0))
+    tgt, src, depth, true = _pair(
+        cam, make_pose(0, 0, 0, yaw_deg=180.0), make_pose(0.1, 0, -0.3, yaw_deg=184.0)
+    )
     guess = torch.eye(4, dtype=torch.float64)[None]
     wrapped = align(tgt, src, depth, guess, cam)
     cut = align(tgt, src, depth, guess, cam, wrap=False)
@@ -114,7 +118,11 @@ def test_shapes_are_checked():
 
 @pytest.mark.parametrize(
     "camera",
-    [CylindricalCamera.full(64, 16), PinholeCamera.from_fov(40, 30, 70.0), EquirectangularCamera.full(64, 32)],
+    [
+        CylindricalCamera.full(64, 16),
+        PinholeCamera.from_fov(40, 30, 70.0),
+        EquirectangularCamera.full(64, 32),
+    ],
     ids=["cylindrical", "pinhole", "equirectangular"],
 )
 def test_projection_jacobian_matches_autograd(camera):

@@ -34,6 +34,14 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
         metavar="METRES",
         help="the camera's height above the ground: the trajectory (and depth maps) in metres",
     )
+    p.add_argument(
+        "--keyframes",
+        type=int,
+        default=1,
+        metavar="N",
+        help="with --refine: align each frame to a keyframe, a new one every N frames (default 1: each frame "
+        "to the previous one); errors then add up once per keyframe instead of once per frame",
+    )
     p.add_argument("--depth", action="store_true", help="also write every frame's depth: OUT/depth/FRAME.npy")
     p.add_argument("--fps", type=float, help="take about N frames a second from a video (default: all)")
     p.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
@@ -78,6 +86,7 @@ def run_odometry(args: argparse.Namespace) -> int:
         save_depth_maps=args.depth,
         fps=args.fps,
         stride=args.stride,
+        keyframe_every=args.keyframes,
         batch_size=args.batch_size,
         device=args.device,
         progress=not args.no_progress,

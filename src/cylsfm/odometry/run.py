@@ -29,7 +29,7 @@ from .frames import Ride, depth_files, open_ride
 from .ground import metric_scale
 from .report import ride_metrics, top_view
 from .state import STATE_FILE, State, fingerprint
-from .track import Tracker, network_size
+from .track import Tracker, keyframe_steps, network_size
 
 __all__ = ["OdometryResult", "odometry"]
 
@@ -82,6 +82,7 @@ def odometry(
     save_depth_maps: bool = False,
     fps: float | None = None,
     stride: int = 1,
+    keyframe_every: int = 1,
     batch_size: int = 8,
     device: str = "auto",
     align_config: AlignConfig | None = None,
@@ -101,6 +102,8 @@ def odometry(
         camera_height: the camera's height above the ground in metres: scale the result to metres.
         save_depth_maps: write each frame's depth to ``OUT/depth/FRAME.npy``.
         fps: take about this many frames a second from a video; ``stride``: every n-th frame.
+        keyframe_every: with ``refine``, align each frame to a keyframe, a new one every this many
+            frames (1: each frame to the one before); the error then adds up once per keyframe.
         batch_size: windows and pairs per call; ``device``: ``auto``, ``cpu``, ``cuda``, ``cuda:N``.
         align_config: the refinement's settings; ``progress``: show a progress bar.
 
@@ -109,6 +112,8 @@ def odometry(
     """
     started = time.perf_counter()
     _checked(refine, camera_height, batch_size, depth_from)
+    if keyframe_every < 1:
+        raise InputError(f"keyframe_every must be at least 1, got {keyframe_every}")
     ride = open_ride(input, fps, stride)
     predictor = (
         checkpoint if isinstance(checkpoint, Predictor) else Predictor.from_checkpoint(checkpoint, device)
@@ -135,6 +140,7 @@ def odometry(
         "depth_from": str(Path(depth_from).resolve()) if depth_from is not None else None,
         "fps": fps,
         "stride": stride,
+        "keyframe_every": keyframe_every,
         "depth_maps": save_depth_maps,
         # depth files are written in network units, or scaled to metres at the end (kept apart till then)
         "depth_scale": camera_height if save_depth_maps else None,
@@ -151,6 +157,7 @@ def odometry(
         refine,
         config,
         batch_size,
+        keyframe_every,
         depth_of=_depth_reader(depths, predictor, net_cam) if depths is not None else None,
         on_depth=_depth_writer(dest / (RAW_DEPTH if camera_height else "depth"), state)
         if save_depth_maps
@@ -258,7 +265,8 @@ def _finish(
     started: float,
 ) -> OdometryResult:
     """Scale, chain, and write the trajectory, the plot, the measures and the summary."""
-    steps = np.stack(state.refined if refine else state.net)
+    refined = keyframe_steps(np.stack(state.refined), tracker.every) if refine else None
+    steps = refined if refined is not None else np.stack(state.net)
     unit, scale = ("metres (ground-truth depth)", None) if depths is not None else ("network units", None)
     comments = []
     if camera_height is not None:
@@ -289,7 +297,7 @@ def _finish(
             chain_poses(np.stack(state.net)),
             ["the pose network alone"],
         )
-    metrics, gt = _measure(ride, state, refine)
+    metrics, gt = _measure(ride, state, refined)
     top_view(
         dest / "trajectory.png",
         c2w,
@@ -335,7 +343,7 @@ def _refine_stats(state: State) -> dict[str, float]:
     }
 
 
-def _measure(ride: Ride, state: State, refine: bool):
+def _measure(ride: Ride, state: State, refined: np.ndarray | None):
     truth = ride.ground_truth()
     if truth is None:
         return None, None
@@ -343,7 +351,7 @@ def _measure(ride: Ride, state: State, refine: bool):
     if len(gt) != len(state.stems):
         return None, None
     steps = {
-        "refined" if refine else "network": np.stack(state.refined) if refine else np.stack(state.net),
+        "refined": refined,
         "network": np.stack(state.net),
         "compass": np.stack(state.compass),
     }

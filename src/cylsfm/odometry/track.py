@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..evaluate.pose_metrics import step_from_window, window_centre
-from ..geometry import Camera, compass_yaw, yaw_matrix
+from ..geometry import Camera, compass_yaw, invert, yaw_matrix
 from ..model import Predictor
 from .align import AlignConfig, align
 from .ground import ground_height
@@ -52,6 +52,8 @@ class Tracker:
         refine: refine each step by :func:`~cylsfm.odometry.align.align`.
         align_config: its settings.
         batch_size: windows / pairs per call.
+        keyframe_every: refine each frame against a keyframe, a new one every this many frames (1: each
+            frame against the one before).
         depth_of: ground-truth depth for frames by index (``[1,h,w]`` at the view's size), or ``None``
             for the network's depth.
         on_depth: called with each chunk's indices and view depths (to write depth files).
@@ -65,6 +67,7 @@ class Tracker:
         refine: bool,
         align_config: AlignConfig,
         batch_size: int,
+        keyframe_every: int = 1,
         depth_of: Callable[[int], Tensor] | None = None,
         on_depth: DepthSink | None = None,
     ) -> None:
@@ -76,6 +79,7 @@ class Tracker:
         self.refine = refine
         self.align_config = align_config
         self.batch = batch_size
+        self.every = keyframe_every
         self.depth_of = depth_of
         self.on_depth = on_depth
         self.k = (int(predictor.config.data.seq_length) - 1) // 2
@@ -162,42 +166,45 @@ class Tracker:
         t = self.times.add("compass", t)
         st.net += list(nets)
         st.compass += list(comp.numpy())
-        if not self.refine:
-            return
-        depth = torch.stack([self.depths[j] for j in chunk])
-        init = self._rescaled(chunk, net)
-        cands = init[:, None]
+        if self.refine:
+            self._refine(chunk)
+            self.times.add("refinement", t)
+
+    def _keyframe(self, j: int) -> int:
+        """The keyframe that step ``j``'s source (frame ``j + 1``) is aligned to."""
+        return j - j % self.every
+
+    def _refine(self, chunk: list[int]) -> None:
+        """Align the source of each step of ``chunk`` (frame ``j+1``) to its keyframe ``K``: ``T_{K->j+1}``,
+        started from the network's steps from ``K`` chained (or with the compass's yaw from ``K``)."""
+        st = self.state
+        keys = [self._keyframe(j) for j in chunk]
+        tgt = self._view(torch.stack([self.images[key] for key in keys]))
+        src = self._view(torch.stack([self.images[j + 1] for j in chunk]))
+        init = []
+        for j, key in zip(chunk, keys, strict=True):
+            rel = np.eye(4)
+            for i in range(key, j + 1):
+                rel = st.net[i] @ rel
+            init.append(rel)
+        start = self._rescaled(keys, torch.from_numpy(np.stack(init)))
+        cands = start[:, None]
         if self.view.wraps:  # the compass's yaw with the network's translation
-            turned = init.clone()
-            turned[:, :3, :3] = comp[:, :3, :3]
-            cands = torch.stack((init, turned), 1)
+            turned = start.clone()
+            turned[:, :3, :3] = yaw_matrix(compass_yaw(tgt, src), dtype=torch.float64)
+            cands = torch.stack((start, turned), 1)
+        depth = torch.stack([self.depths[key] for key in keys])
         res = align(tgt, src, depth, cands, self.view, config=self.align_config)
         st.refined += list(res.poses.cpu().numpy())
         st.cost += list(
             torch.stack((res.start_cost, res.cost, res.start.double(), res.valid.double()), 1).numpy()
         )
-        self.times.add("refinement", t)
-
-    def _rescaled(self, chunk: list[int], net: Tensor) -> Tensor:
-        """The network's steps with their translation brought to the unit of the depth used (the same unit
-        unless the depth is ground truth: then by the ratio of the median depths)."""
-        if self.depth_of is None:
-            return net
-        with torch.inference_mode():
-            own = self.p.depth(torch.stack([self.images[j] for j in chunk]), self.camera).float()
-        out = net.clone()
-        for b, j in enumerate(chunk):
-            gt = self.depths[j]
-            ratio = gt[gt > 0].median() / own[b][own[b] > 0].median()
-            out[b, :3, 3] *= float(ratio)
-        return out
 
     def _forget(self, all_frames: bool = False) -> None:
         """Drop the frames no later step or window needs, and record the rest in the state."""
         st = self.state
-        keep_from = min(
-            len(st.net), len(st.windows)
-        )  # the next step's target / the next window's first frame
+        # the next step's target or keyframe / the next window's first frame
+        keep_from = min(self._keyframe(len(st.net)), len(st.windows))
         if all_frames:
             keep_from = max(self.images, default=0) + 1
         for i in [i for i in self.images if i < keep_from]:
@@ -213,3 +220,13 @@ def network_size(images: Tensor, size: tuple[int, int]) -> Tensor:
     if images.shape[-2:] == (h, w):
         return images
     return F.interpolate(images, size=(h, w), mode="area")
+
+
+def keyframe_steps(rel: np.ndarray, every: int) -> np.ndarray:
+    """Consecutive steps ``T_{j->j+1}`` ``[M-1,4,4]`` from keyframe-relative poses ``rel[j] = T_{K->j+1}``
+    (``K = j - j % every``): ``T_{K->j+1} inv(T_{K->j})`` within a keyframe's frames."""
+    out = np.array(rel, dtype=np.float64, copy=True)
+    for j in range(len(out)):
+        if j % every:
+            out[j] = rel[j] @ invert(rel[j - 1])
+    return out

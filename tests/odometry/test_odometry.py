@@ -1,0 +1,181 @@
+"""``cylsfm odometry`` end to end on a small rendered ride: the trajectory file (through evo), ground-truth
+depth refinement, metres from the camera height, resuming a killed run, videos, and bad inputs."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+import torch
+
+import cylsfm
+from cylsfm.cli import main
+from cylsfm.data.format import SequenceWriter
+from cylsfm.data.synth.room import make_pose, render_room
+from cylsfm.geometry import CylindricalCamera
+from cylsfm.model import build_models, save_checkpoint
+from cylsfm.model.config import config_to_dict, preset
+from cylsfm.odometry import run as odometry_run
+from cylsfm.odometry.track import Tracker, keyframe_steps
+
+N_FRAMES = 10
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory) -> Path:
+    """An untrained checkpoint of the default recipe at 128x32 (its poses are noise: refinement must work)."""
+    cfg = preset("default")
+    cfg.data.width, cfg.data.height = 128, 32
+    torch.manual_seed(0)
+    disp, pose = build_models(cfg)
+    path = tmp_path_factory.mktemp("ckpt") / "model.pt"
+    save_checkpoint(
+        path,
+        {
+            "config": config_to_dict(cfg),
+            "step": 0,
+            "disp_net": disp.state_dict(),
+            "pose_net": pose.state_dict(),
+        },
+    )
+    return path
+
+
+@pytest.fixture(scope="module")
+def ride(tmp_path_factory) -> Path:
+    """A dataset sequence: a camera driving and turning through the room, 128x32, with depth and poses."""
+    cam = CylindricalCamera.full(128, 32)
+    seq = tmp_path_factory.mktemp("data") / "ride"
+    writer = SequenceWriter(seq, cam)
+    poses = []
+    for i in range(N_FRAMES):
+        c2w = make_pose(0.8 - 0.12 * i, 0.1, -2.0 + 0.3 * i, yaw_deg=-8.0 + 3.0 * i)
+        image, depth = render_room(cam, c2w, supersample=2)
+        rgb = (image[0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
+        writer.add_frame(rgb, depth[0, 0].numpy())
+        poses.append(c2w.numpy())
+    return writer.finish(np.stack(poses), timestamps=np.arange(N_FRAMES) * 0.2)
+
+
+def _run(ckpt, *args) -> int:
+    return main(["odometry", "--checkpoint", str(ckpt), "--device", "cpu", "--no-progress", *map(str, args)])
+
+
+def test_refined_with_true_depth_recovers_the_ride(ckpt, ride, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert _run(ckpt, ride, "--out", out, "--refine", "--depth-from", ride.parent) == 0
+    printed = capsys.readouterr().out
+    assert "refined" in printed and "constant_velocity" in printed
+    from evo.tools import file_interface
+
+    traj = file_interface.read_tum_trajectory_file(str(out / "trajectory.txt"))
+    assert traj.num_poses == N_FRAMES
+    np.testing.assert_allclose(traj.timestamps, np.arange(N_FRAMES) * 0.2)
+    header = (out / "trajectory.txt").read_text().splitlines()[1]
+    assert "metres (ground-truth depth)" in header
+    metrics = __import__("json").loads((out / "metrics.json").read_text())
+    assert metrics["refined"]["rot_err_deg_mean"] < 0.2
+    assert metrics["refined"]["dir_err_deg_mean"] < 3.0
+    # metres: the unaligned refined path has the true length within a few percent
+    gt = np.stack([make_pose(0.8 - 0.12 * i, 0.1, -2.0 + 0.3 * i).numpy() for i in range(N_FRAMES)])
+    est = np.stack(traj.poses_se3)
+    true_len = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
+    est_len = np.linalg.norm(np.diff(est[:, :3, 3], axis=0), axis=1).sum()
+    assert est_len == pytest.approx(true_len, rel=0.05)
+    assert metrics["refined"]["rot_err_deg_mean"] < metrics["network"]["rot_err_deg_mean"]
+    assert (out / "trajectory.png").stat().st_size > 1000
+    assert (out / "trajectory_network.txt").is_file()
+
+
+def test_library_call_and_metres_from_the_camera_height(ckpt, ride, tmp_path):
+    result = cylsfm.odometry(
+        ride, ckpt, tmp_path / "o", camera_height=1.5, save_depth_maps=True, device="cpu", progress=False
+    )
+    assert result.unit == "metres" and result.metres_per_unit > 0
+    assert "camera height 1.5 m" in (tmp_path / "o" / "trajectory.txt").read_text()
+    depth = np.load(tmp_path / "o" / "depth" / f"{result.frames[3]}.npy")
+    assert depth.shape == (32, 128)
+    assert not (tmp_path / "o" / odometry_run.RAW_DEPTH).exists()
+    assert len(result.c2w) == N_FRAMES and result.metrics is not None
+
+
+def test_a_killed_run_continues_to_the_same_trajectory(ckpt, ride, tmp_path, monkeypatch):
+    monkeypatch.setattr(odometry_run, "CHUNK", 3)
+    whole = cylsfm.odometry(ride, ckpt, tmp_path / "whole", refine=True, device="cpu", progress=False)
+    push = Tracker.push
+    calls = {"n": 0}
+
+    def dying_push(self, indices, images):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return push(self, indices, images)
+
+    monkeypatch.setattr(Tracker, "push", dying_push)
+    with pytest.raises(KeyboardInterrupt):
+        cylsfm.odometry(ride, ckpt, tmp_path / "killed", refine=True, device="cpu", progress=False)
+    assert not (tmp_path / "killed" / "trajectory.txt").exists()
+    monkeypatch.setattr(Tracker, "push", push)
+    resumed = cylsfm.odometry(ride, ckpt, tmp_path / "killed", refine=True, device="cpu", progress=False)
+    np.testing.assert_allclose(resumed.c2w, whole.c2w, atol=1e-6)
+    assert resumed.timings["depth"] < whole.timings["depth"]  # the first chunks were not redone
+
+
+def test_a_video_ride(ckpt, ride, tmp_path):
+    video = tmp_path / "ride.mp4"
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("mpeg4", rate=5)
+        stream.width, stream.height, stream.pix_fmt = 128, 32, "yuv420p"
+        for f in sorted((ride / "images").iterdir()):
+            from PIL import Image
+
+            frame = av.VideoFrame.from_ndarray(np.asarray(Image.open(f).convert("RGB")), format="rgb24")
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode(None):
+            container.mux(packet)
+    result = cylsfm.odometry(video, ckpt, tmp_path / "v", refine=True, device="cpu", progress=False)
+    assert len(result.c2w) == N_FRAMES
+    np.testing.assert_allclose(result.times, np.arange(N_FRAMES) / 5, atol=1e-6)
+    assert result.metrics is None
+    rot = np.degrees(np.arctan2(result.c2w[-1, 0, 2], result.c2w[-1, 2, 2]))
+    assert math.isfinite(rot)
+
+
+def test_bad_inputs_are_one_line_errors_naming_the_file(ckpt, ride, tmp_path, capsys):
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"\x00not a video at all" * 50)
+    assert _run(ckpt, broken, "--out", tmp_path / "a") == 2
+    assert str(broken) in capsys.readouterr().err
+    wrong = tmp_path / "camera.json"
+    CylindricalCamera.full(100, 50).to_json(wrong)
+    assert _run(ckpt, ride, "--out", tmp_path / "b", "--camera", wrong) == 2
+    assert str(wrong) in capsys.readouterr().err or str(ride) in capsys.readouterr().err
+    bad_ckpt = tmp_path / "other.pt"
+    bad_ckpt.write_bytes(b"garbage")
+    assert _run(bad_ckpt, ride, "--out", tmp_path / "c") == 2
+    assert str(bad_ckpt) in capsys.readouterr().err
+    assert _run(ckpt, ride, "--out", tmp_path / "d", "--depth-from", tmp_path) == 2
+    assert "cylsfm odometry: error:" in capsys.readouterr().err
+    single = next((ride / "images").iterdir())
+    assert _run(ckpt, single, "--out", tmp_path / "e") == 2
+    assert "one image" in capsys.readouterr().err
+
+
+def test_keyframe_steps_undo_the_keyframe_composition():
+    rng = np.random.default_rng(0)
+    steps = np.tile(np.eye(4), (7, 1, 1))
+    for s in steps:
+        s[:3, :3] = __import__("cylsfm.geometry", fromlist=["rotation_y"]).rotation_y(rng.normal(0, 0.1))
+        s[:3, 3] = rng.normal(0, 1, 3)
+    every = 3
+    rel = []
+    for j in range(len(steps)):  # T_{K->j+1}, K = j - j % every
+        t = np.eye(4)
+        for i in range(j - j % every, j + 1):
+            t = steps[i] @ t
+        rel.append(t)
+    np.testing.assert_allclose(keyframe_steps(np.stack(rel), every), steps, atol=1e-12)

@@ -200,6 +200,20 @@ class Tracker:
             torch.stack((res.start_cost, res.cost, res.start.double(), res.valid.double()), 1).numpy()
         )
 
+    def _rescaled(self, targets: list[int], net: Tensor) -> Tensor:
+        """The network's poses from ``targets`` with their translation in the unit of the depth used: the
+        same unit, unless the depth is ground truth (then scaled by the ratio of the median depths)."""
+        if self.depth_of is None:
+            return net
+        with torch.inference_mode():
+            own = self.p.depth(torch.stack([self.images[j] for j in targets]), self.camera).float()
+        out = net.clone()
+        for b, j in enumerate(targets):
+            gt = self.depths[j]
+            ratio = gt[gt > 0].median() / own[b][own[b] > 0].median()
+            out[b, :3, 3] *= float(ratio)
+        return out
+
     def _forget(self, all_frames: bool = False) -> None:
         """Drop the frames no later step or window needs, and record the rest in the state."""
         st = self.state

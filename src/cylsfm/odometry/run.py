@@ -62,7 +62,9 @@ class OdometryResult:
     seconds: float = 0.0
 
 
-def _checked(refine: bool, camera_height: float | None, batch_size: int, depth_from: Any) -> None:
+def _checked(refine: bool, camera_height: float | None, batch_size: int, depth_from: Any, every: int) -> None:
+    if every < 1:
+        raise InputError(f"keyframe_every must be at least 1, got {every}")
     if batch_size < 1:
         raise InputError(f"batch_size must be at least 1, got {batch_size}")
     if camera_height is not None and not (math.isfinite(camera_height) and camera_height > 0):
@@ -111,20 +113,12 @@ def odometry(
         CylsfmError: an input, camera, checkpoint or dataset problem, naming the file.
     """
     started = time.perf_counter()
-    _checked(refine, camera_height, batch_size, depth_from)
-    if keyframe_every < 1:
-        raise InputError(f"keyframe_every must be at least 1, got {keyframe_every}")
+    _checked(refine, camera_height, batch_size, depth_from, keyframe_every)
     ride = open_ride(input, fps, stride)
     predictor = (
         checkpoint if isinstance(checkpoint, Predictor) else Predictor.from_checkpoint(checkpoint, device)
     )
-    cam = load_camera(camera) if isinstance(camera, str | os.PathLike) else camera
-    cam_name = (
-        str(camera) if isinstance(camera, str | os.PathLike) else ("the given camera" if camera else None)
-    )
-    if cam is None and ride.camera is not None:
-        cam, cam_name = ride.camera, str(ride.path / "camera.json")
-    plan = plan_input(ride.path, ride.size, predictor, model_vfov_h(predictor.config), cam, cam_name)
+    plan = _plan(ride, predictor, camera)
     net_cam = plan.network_input.resized(*predictor.size)
     if depth_from is not None and plan.convert_to is not None:
         raise CylsfmError(
@@ -132,21 +126,7 @@ def odometry(
         )
     config = align_config or AlignConfig()
     depths = depth_files(depth_from, ride) if depth_from is not None else None
-    settings = {
-        "input": str(Path(ride.path).resolve()),
-        "checkpoint": _checkpoint_id(checkpoint),
-        "camera": plan.network_input.to_dict(),
-        "refine": refine,
-        "depth_from": str(Path(depth_from).resolve()) if depth_from is not None else None,
-        "fps": fps,
-        "stride": stride,
-        "keyframe_every": keyframe_every,
-        "depth_maps": save_depth_maps,
-        # depth files are written in network units, or scaled to metres at the end (kept apart till then)
-        "depth_scale": camera_height if save_depth_maps else None,
-        "align": asdict(config),
-        "version": __version__,
-    }
+    settings = _settings(ride, checkpoint, plan, config, depth_from, locals())
     dest = Path(out)
     dest.mkdir(parents=True, exist_ok=True)
     state = State.load(dest / STATE_FILE, fingerprint(settings)) or State(fingerprint(settings))
@@ -166,6 +146,38 @@ def odometry(
     if not state.finished:
         _track(ride, plan, predictor, tracker, state, dest, progress)
     return _finish(ride, state, dest, tracker, camera_height, save_depth_maps, refine, depths, started)
+
+
+def _settings(
+    ride: Ride, checkpoint: Any, plan: Any, config: AlignConfig, depth_from: Any, args: dict
+) -> dict:
+    """What decides a run's result: a saved state with other settings is not continued."""
+    return {
+        "input": str(Path(ride.path).resolve()),
+        "checkpoint": _checkpoint_id(checkpoint),
+        "camera": plan.network_input.to_dict(),
+        "refine": args["refine"],
+        "depth_from": str(Path(depth_from).resolve()) if depth_from is not None else None,
+        "fps": args["fps"],
+        "stride": args["stride"],
+        "keyframe_every": args["keyframe_every"],
+        "depth_maps": args["save_depth_maps"],
+        # depth files are written in network units, or scaled to metres at the end (kept apart till then)
+        "depth_scale": args["camera_height"] if args["save_depth_maps"] else None,
+        "align": asdict(config),
+        "version": __version__,
+    }
+
+
+def _plan(ride: Ride, predictor: Predictor, camera: Any) -> Any:
+    """How the ride's frames reach the network (its camera: the one given, or a dataset sequence's own)."""
+    cam = load_camera(camera) if isinstance(camera, str | os.PathLike) else camera
+    cam_name = (
+        str(camera) if isinstance(camera, str | os.PathLike) else ("the given camera" if camera else None)
+    )
+    if cam is None and ride.camera is not None:
+        cam, cam_name = ride.camera, str(ride.path / "camera.json")
+    return plan_input(ride.path, ride.size, predictor, model_vfov_h(predictor.config), cam, cam_name)
 
 
 def _checkpoint_id(checkpoint: Any) -> str:

@@ -126,7 +126,9 @@ def odometry(
         )
     config = align_config or AlignConfig()
     depths = depth_files(depth_from, ride) if depth_from is not None else None
-    settings = _settings(ride, checkpoint, plan, config, depth_from, locals())
+    options = {"refine": refine, "fps": fps, "stride": stride, "keyframe_every": keyframe_every}
+    depth_scale = camera_height if save_depth_maps else None
+    settings = _settings(ride, checkpoint, plan, config, depth_from, options, save_depth_maps, depth_scale)
     dest = Path(out)
     dest.mkdir(parents=True, exist_ok=True)
     state = State.load(dest / STATE_FILE, fingerprint(settings)) or State(fingerprint(settings))

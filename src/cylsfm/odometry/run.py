@@ -127,6 +127,7 @@ def odometry(
     config = align_config or AlignConfig()
     depths = depth_files(depth_from, ride) if depth_from is not None else None
     options = {"refine": refine, "fps": fps, "stride": stride, "keyframe_every": keyframe_every}
+    options["ground_fit"] = camera_height is not None  # the depth of every frame is needed for it
     depth_scale = camera_height if save_depth_maps else None
     settings = _settings(ride, checkpoint, plan, config, depth_from, options, save_depth_maps, depth_scale)
     dest = Path(out)
@@ -141,6 +142,7 @@ def odometry(
         batch_size,
         keyframe_every,
         depth_of=_depth_reader(depths, predictor, net_cam) if depths is not None else None,
+        need_depth=camera_height is not None,
         on_depth=_depth_writer(dest / (RAW_DEPTH if camera_height else "depth"), state)
         if save_depth_maps
         else None,
@@ -151,21 +153,25 @@ def odometry(
 
 
 def _settings(
-    ride: Ride, checkpoint: Any, plan: Any, config: AlignConfig, depth_from: Any, args: dict
-) -> dict:
-    """What decides a run's result: a saved state with other settings is not continued."""
+    ride: Ride,
+    checkpoint: Any,
+    plan: Any,
+    config: AlignConfig,
+    depth_from: Any,
+    options: dict[str, Any],
+    depth_maps: bool,
+    depth_scale: float | None,
+) -> dict[str, Any]:
+    """What decides a run's result: a saved state with other settings is not continued. (Depth maps are
+    written in network units, or kept apart until the scale to metres is known: so that scale counts.)"""
     return {
         "input": str(Path(ride.path).resolve()),
         "checkpoint": _checkpoint_id(checkpoint),
         "camera": plan.network_input.to_dict(),
-        "refine": args["refine"],
         "depth_from": str(Path(depth_from).resolve()) if depth_from is not None else None,
-        "fps": args["fps"],
-        "stride": args["stride"],
-        "keyframe_every": args["keyframe_every"],
-        "depth_maps": args["save_depth_maps"],
-        # depth files are written in network units, or scaled to metres at the end (kept apart till then)
-        "depth_scale": args["camera_height"] if args["save_depth_maps"] else None,
+        **options,
+        "depth_maps": depth_maps,
+        "depth_scale": depth_scale,
         "align": asdict(config),
         "version": __version__,
     }

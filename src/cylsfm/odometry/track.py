@@ -57,6 +57,8 @@ class Tracker:
         depth_of: ground-truth depth for frames by index (``[1,h,w]`` at the view's size), or ``None``
             for the network's depth.
         on_depth: called with each chunk's indices and view depths (to write depth files).
+        need_depth: predict every frame's depth (and fit the ground) even when nothing above needs it: for
+            the metric scale. Without it, refinement or depth files, the pose network runs alone.
     """
 
     def __init__(
@@ -70,6 +72,7 @@ class Tracker:
         keyframe_every: int = 1,
         depth_of: Callable[[int], Tensor] | None = None,
         on_depth: DepthSink | None = None,
+        need_depth: bool = True,
     ) -> None:
         self.p = predictor
         self.camera = camera
@@ -80,6 +83,7 @@ class Tracker:
         self.align_config = align_config
         self.batch = batch_size
         self.every = keyframe_every
+        self.need_depth = need_depth or refine or on_depth is not None
         self.depth_of = depth_of
         self.on_depth = on_depth
         self.k = (int(predictor.config.data.seq_length) - 1) // 2
@@ -94,12 +98,16 @@ class Tracker:
     def push(self, indices: list[int], images: Tensor) -> None:
         """Add frames ``indices`` (consecutive, the next ones) with their network-size images ``[B,3,H,W]``."""
         t = time.perf_counter()
-        depth = self._depth(indices, images)
-        t = self.times.add("depth", t)
-        self.state.heights += ground_height(depth, self.view).tolist()
-        if self.on_depth is not None:
-            self.on_depth(indices, depth)
-        t = self.times.add("ground, depth files", t)
+        if self.need_depth:
+            depth = self._depth(indices, images)
+            t = self.times.add("depth", t)
+            self.state.heights += ground_height(depth, self.view).tolist()
+            if self.on_depth is not None:
+                self.on_depth(indices, depth)
+            t = self.times.add("ground, depth files", t)
+        else:  # the network's poses alone need no depth
+            depth = torch.zeros(len(indices), 1, 1, 1)
+            self.state.heights += [float("nan")] * len(indices)
         for i, im, d in zip(indices, images.cpu(), depth.cpu(), strict=True):
             self.images[i], self.depths[i] = im, d
         last = indices[-1]

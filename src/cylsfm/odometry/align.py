@@ -38,7 +38,7 @@ from ..geometry import (
     transform_points,
 )
 
-__all__ = ["AlignConfig", "AlignResult", "align"]
+__all__ = ["AlignConfig", "AlignResult", "align", "resize_depth"]
 
 #: Grey from RGB (ITU-R BT.601 luma weights).
 _LUMA = (0.299, 0.587, 0.114)
@@ -133,25 +133,34 @@ def _half(x: Tensor) -> Tensor:
     return F.interpolate(x, size=(h // 2, w // 2), mode="area")
 
 
+def resize_depth(depth: Tensor, size: tuple[int, int]) -> Tensor:
+    """Depth ``[B,1,H,W]`` (``<= 0``: unknown) -> ``[B,1,h,w]`` at ``size = (h, w)``: the area average of
+    the disparity over the pixels with a depth, where they cover more than half the area; 0 elsewhere."""
+    has = depth > 0
+    disp = torch.where(has, 1.0 / depth.clamp(min=1e-12), torch.zeros_like(depth)).float()
+    weight = has.float()
+    if tuple(depth.shape[-2:]) != tuple(size):
+        disp = F.interpolate(disp, size=size, mode="area")
+        weight = F.interpolate(weight, size=size, mode="area")
+    out = torch.where(weight > 0.5, weight / disp.clamp(min=1e-12), torch.zeros_like(disp))
+    return torch.where(torch.isfinite(out), out, torch.zeros_like(out))
+
+
 def _pyramid(
     target: Tensor, source: Tensor, depth: Tensor, camera: Camera, wrap: bool, levels: int
 ) -> list[_Level]:
     """The levels, finest first."""
     tgt, src = _grey(target.float()), _grey(source.float())
-    has = depth > 0
-    disp = torch.where(has, 1.0 / depth.clamp(min=1e-12), torch.zeros_like(depth)).float()
-    weight = has.float()
     out = []
     for level in range(levels):
         if level:
             if tgt.shape[-2] // 2 < _MIN_HEIGHT or tgt.shape[-1] // 2 < _MIN_HEIGHT:
                 break
-            tgt, src, disp, weight = _half(tgt), _half(src), _half(disp), _half(weight)
+            tgt, src = _half(tgt), _half(src)
         h, w = tgt.shape[-2:]
         cam = camera if level == 0 else camera.resized(w, h)
-        ok = weight > 0.5
-        d = torch.where(ok, weight / disp.clamp(min=1e-12), torch.zeros_like(disp))
-        ok = ok & torch.isfinite(d) & (d > 0)
+        d = resize_depth(depth, (h, w))
+        ok = d > 0
         d = torch.where(ok, d, torch.ones_like(d))
         out.append(_Level(cam, tgt, _gradients(src, wrap), cam.unproject(d), ok, wrap))
     return out

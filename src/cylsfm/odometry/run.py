@@ -24,7 +24,7 @@ from ..geometry import Camera, load_camera
 from ..model import Predictor
 from ..model.plan import model_vfov_h, network_images, plan_input
 from ..runtime import progress_bar
-from .align import AlignConfig
+from .align import AlignConfig, resize_depth
 from .frames import Ride, depth_files, open_ride
 from .ground import metric_scale
 from .report import ride_metrics, top_view
@@ -198,21 +198,12 @@ def _checkpoint_id(checkpoint: Any) -> str:
 
 
 def _depth_reader(files: list[Path], predictor: Predictor, camera: Camera):
-    """Ground-truth depth of frame ``i`` at the view's size (area-averaged as disparity)."""
-    view = predictor.network_camera(camera)
+    """Ground-truth depth of frame ``i`` ``[1,h,w]`` at the network's size, in the view it sees."""
     win = predictor.window(camera)
 
     def read(i: int) -> torch.Tensor:
-        d = torch.from_numpy(load_depth(files[i]))[None, None]
-        ok = (d > 0).float()
-        disp = torch.where(d > 0, 1.0 / d.clamp(min=1e-12), torch.zeros_like(d))
-        size = (camera.height, camera.width)
-        disp, ok = (torch.nn.functional.interpolate(x, size=size, mode="area") for x in (disp, ok))
-        if win is not None:
-            disp, ok = disp[..., win[0] : win[1]], ok[..., win[0] : win[1]]
-        out = torch.where(ok > 0.5, ok / disp.clamp(min=1e-12), torch.zeros_like(disp))
-        assert out.shape[-2:] == (view.height, view.width)
-        return out[0]
+        d = resize_depth(torch.from_numpy(load_depth(files[i]))[None, None], (camera.height, camera.width))
+        return (d if win is None else d[..., win[0] : win[1]])[0]
 
     return read
 

@@ -175,16 +175,18 @@ class Tracker:
         st.net += list(nets)
         st.compass += list(comp.numpy())
         if self.refine:
-            self._refine(chunk)
+            self._refine(chunk, comp[:, :3, :3])
             self.times.add("refinement", t)
 
     def _keyframe(self, j: int) -> int:
         """The keyframe that step ``j``'s source (frame ``j + 1``) is aligned to."""
         return j - j % self.every
 
-    def _refine(self, chunk: list[int]) -> None:
+    def _refine(self, chunk: list[int], consecutive_yaw: Tensor) -> None:
         """Align the source of each step of ``chunk`` (frame ``j+1``) to its keyframe ``K``: ``T_{K->j+1}``,
-        started from the network's steps from ``K`` chained (or with the compass's yaw from ``K``)."""
+        started from the network's steps from ``K`` chained (or with the compass's yaw from ``K``;
+        ``consecutive_yaw`` ``[B,3,3]``: its rotations between frames ``j`` and ``j+1``, the same pairs
+        when every frame is a keyframe)."""
         st = self.state
         keys = [self._keyframe(j) for j in chunk]
         tgt = self._view(torch.stack([self.images[key] for key in keys]))
@@ -199,7 +201,10 @@ class Tracker:
         cands = start[:, None]
         if self.view.wraps:  # the compass's yaw with the network's translation
             turned = start.clone()
-            turned[:, :3, :3] = yaw_matrix(compass_yaw(tgt, src), dtype=torch.float64)
+            same = self.every == 1
+            turned[:, :3, :3] = (
+                consecutive_yaw if same else yaw_matrix(compass_yaw(tgt, src), dtype=torch.float64)
+            )
             cands = torch.stack((start, turned), 1)
         depth = torch.stack([self.depths[key] for key in keys])
         res = align(tgt, src, depth, cands, self.view, config=self.align_config)

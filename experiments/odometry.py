@@ -8,7 +8,8 @@ Usage::
 VARIANT is one of ``refine`` (``cylsfm odometry --refine``), ``refine-kf5`` (``--keyframes 5``),
 ``true-depth`` (``--refine --depth-from`` the benchmark: the test of the refinement itself) and
 ``rolled`` / ``rolled-kf5`` (the rides with every frame rolled by a random yaw, as a camera mounted turned;
-ground truth turned with them). Default: all. Each run writes ``OUT/VARIANT/SEQ/`` (the files of ``cylsfm
+ground truth turned with them), ``refine-ahead`` / ``rolled-ahead`` (``--mount-yaw 0``: the pose network
+reads the frames as they are, the direction of travel not looked for). Default: all. Each run writes ``OUT/VARIANT/SEQ/`` (the files of ``cylsfm
 odometry``); the table (per variant: the trajectory, the pose network alone, the visual compass, constant
 velocity, zero motion; mean over the rides) is printed and saved as ``OUT/table.json``.
 
@@ -35,6 +36,8 @@ VARIANTS = {
     "true-depth": {"refine": True, "depth_from": DATA},
     "rolled": {"refine": True, "rolled": True},
     "rolled-kf5": {"refine": True, "keyframe_every": 5, "rolled": True},
+    "refine-ahead": {"refine": True, "mount_yaw": 0.0},
+    "rolled-ahead": {"refine": True, "mount_yaw": 0.0, "rolled": True},
 }
 MEASURES = ("ape_rmse", "rpe_trans_rmse", "rot_err_deg_mean", "rot_err_deg_turning", "dir_err_deg_mean")
 

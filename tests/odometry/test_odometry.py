@@ -163,6 +163,8 @@ def test_bad_inputs_are_one_line_errors_naming_the_file(ckpt, ride, tmp_path, ca
     single = next((ride / "images").iterdir())
     assert _run(ckpt, single, "--out", tmp_path / "e") == 2
     assert "one image" in capsys.readouterr().err
+    assert _run(ckpt, ride, "--out", tmp_path / "f", "--mount-yaw", "left") == 2
+    assert "mount_yaw" in capsys.readouterr().err
 
 
 def test_keyframe_steps_undo_the_keyframe_composition():

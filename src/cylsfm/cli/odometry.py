@@ -42,12 +42,27 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
         help="with --refine: align each frame to a keyframe, a new one every N frames (default 1: each frame "
         "to the previous one); errors then add up once per keyframe instead of once per frame",
     )
+    p.add_argument(
+        "--mount-yaw",
+        default="auto",
+        metavar="auto|DEGREES",
+        help="where the camera's direction of travel lies in the panorama, in degrees of azimuth (0: straight "
+        "ahead, 90: to the right, i.e. a camera mounted turned left); the pose network reads the frames "
+        "turned to face the motion. Default auto: found from the first frames (full-panorama models)",
+    )
     p.add_argument("--depth", action="store_true", help="also write every frame's depth: OUT/depth/FRAME.npy")
     p.add_argument("--fps", type=float, help="take about N frames a second from a video (default: all)")
     p.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
     p.add_argument("--batch-size", type=int, default=8, help="windows and pairs per call (default 8)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _mount(value: str) -> float | str:
+    try:
+        return value if value == "auto" else float(value)
+    except ValueError:
+        return value  # odometry() names the problem
 
 
 def _cell(m: dict, key: str, fmt: str = "9.4f") -> str:
@@ -87,6 +102,7 @@ def run_odometry(args: argparse.Namespace) -> int:
         fps=args.fps,
         stride=args.stride,
         keyframe_every=args.keyframes,
+        mount_yaw=_mount(args.mount_yaw),
         batch_size=args.batch_size,
         device=args.device,
         progress=not args.no_progress,

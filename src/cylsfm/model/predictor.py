@@ -15,7 +15,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..errors import CylsfmError
-from ..geometry import Camera, CylindricalCamera, pose_vec_to_mat, resize_image
+from ..geometry import (
+    Camera,
+    CylindricalCamera,
+    pose_vec_to_mat,
+    resize_image,
+    roll_columns,
+    roll_pose,
+)
 from ..runtime import pick_device
 from .build import LoadedModels, load_models
 
@@ -102,13 +109,26 @@ class Predictor:
         return 1.0 / disp.clamp(min=1e-6)
 
     @torch.inference_mode()
-    def poses(self, target: Tensor, sources: Tensor, camera: Camera) -> Tensor:
+    def poses(self, target: Tensor, sources: Tensor, camera: Camera, roll: int = 0) -> Tensor:
         """Relative poses ``T_tgt_to_src [B,S,4,4]`` (translation in network depth units).
 
         ``target`` is ``[B,3,H,W]``, ``sources`` ``[B,S,3,H,W]`` with ``S = seq_length - 1`` of the model.
+
+        ``roll`` (full panoramas only): the network reads the frames rolled by this many columns of its
+        input (a yaw, :func:`~cylsfm.geometry.roll_columns`) and its poses are turned back
+        (:func:`~cylsfm.geometry.roll_pose`): e.g. to show it a camera mounted turned as one that faces its
+        motion (:func:`cylsfm.odometry.mount.mount_yaw`).
+
+        Raises:
+            CylsfmError: ``roll`` for a model that does not see whole panoramas.
         """
+        if roll and not (self.fov >= 360 and self.wrap):
+            raise CylsfmError("turning the frames (roll) needs a model of full panoramas")
         b, s = sources.shape[:2]
         tgt = self.prepare(target, camera)
         src = self.prepare(sources.flatten(0, 1), camera).reshape(b, s, *tgt.shape[1:])
-        vec, _ = self.models.pose_net(tgt, src)
-        return pose_vec_to_mat(vec.double())
+        if roll:
+            tgt = roll_columns(tgt, roll).contiguous(memory_format=torch.channels_last)
+            src = roll_columns(src, roll)
+        pose = pose_vec_to_mat(self.models.pose_net(tgt, src)[0].double())
+        return roll_pose(pose, -roll, tgt.shape[-1]) if roll else pose

@@ -38,7 +38,7 @@ from ..geometry import (
     transform_points,
 )
 
-__all__ = ["AlignConfig", "AlignResult", "align", "resize_depth"]
+__all__ = ["AlignConfig", "AlignResult", "align", "photometric_costs", "resize_depth"]
 
 #: Grey from RGB (ITU-R BT.601 luma weights).
 _LUMA = (0.299, 0.587, 0.114)
@@ -328,3 +328,22 @@ def align(
     cost = torch.minimum(cost, start_cost)
     valid = lin.valid.flatten(1).float().mean(1)
     return AlignResult(pose, cost, start_cost, start, valid)
+
+
+def photometric_costs(
+    target: Tensor, source: Tensor, depth: Tensor, poses: Tensor, camera: Camera, wrap: bool | None = None
+) -> Tensor:
+    """The robust photometric cost ``[B,K]`` of ``K`` poses per pair, comparable across the ``K``.
+
+    The cost of :func:`align` at full resolution, all ``K`` poses of a pair measured with one robust
+    threshold: the smallest of theirs (the best-fitting pose's residual scale).
+
+    Args:
+        target, source: images ``[B,3,H,W]``; depth: the targets' depth ``[B,1,H,W]``.
+        poses: ``T_{t->s}`` ``[B,K,4,4]``; camera, wrap: as for :func:`align`.
+    """
+    check_shape(poses, f"{target.shape[0]},K,4,4", "poses")
+    lv = _pyramid(target, source, depth, camera, camera.wraps if wrap is None else wrap, 1)[0]
+    lins = [_linearize(lv, poses[:, i].double()) for i in range(poses.shape[1])]
+    k = torch.stack([_scale(lin) for lin in lins]).min(0).values
+    return torch.stack([_cost(lin, k) for lin in lins], 1)

@@ -2,7 +2,7 @@
 the trajectory and of the references beside it, and the error of every step.
 
 References, none of which learned anything about this ride: the pose network alone (when the trajectory
-is refined), the visual compass (the yaw between the panoramas, one unit step ahead), constant velocity
+is refined), the visual compass (the yaw between the panoramas, with the network's translation), constant velocity
 (the best straight line at constant speed) and zero motion.
 """
 

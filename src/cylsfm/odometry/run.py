@@ -29,7 +29,7 @@ from .frames import Ride, depth_files, open_ride
 from .ground import metric_scale
 from .report import ride_metrics, top_view
 from .state import STATE_FILE, State, fingerprint
-from .track import Tracker, keyframe_steps, network_size
+from .track import MOUNT_AGREEMENT, Tracker, keyframe_steps, network_size
 
 __all__ = ["OdometryResult", "odometry"]
 
@@ -62,9 +62,13 @@ class OdometryResult:
     seconds: float = 0.0
 
 
-def _checked(refine: bool, camera_height: float | None, batch_size: int, depth_from: Any, every: int) -> None:
+def _checked(
+    refine: bool, camera_height: float | None, batch_size: int, depth_from: Any, every: int, mount: Any
+) -> None:
     if every < 1:
         raise InputError(f"keyframe_every must be at least 1, got {every}")
+    if not (mount == "auto" or (isinstance(mount, int | float) and math.isfinite(mount))):
+        raise InputError(f"mount_yaw must be 'auto' or an azimuth in degrees, got {mount!r}")
     if batch_size < 1:
         raise InputError(f"batch_size must be at least 1, got {batch_size}")
     if camera_height is not None and not (math.isfinite(camera_height) and camera_height > 0):
@@ -85,6 +89,7 @@ def odometry(
     fps: float | None = None,
     stride: int = 1,
     keyframe_every: int = 1,
+    mount_yaw: float | str = "auto",
     batch_size: int = 8,
     device: str = "auto",
     align_config: AlignConfig | None = None,
@@ -106,6 +111,10 @@ def odometry(
         fps: take about this many frames a second from a video; ``stride``: every n-th frame.
         keyframe_every: with ``refine``, align each frame to a keyframe, a new one every this many
             frames (1: each frame to the one before); the error then adds up once per keyframe.
+        mount_yaw: the azimuth in degrees of the direction of travel in the panorama (0: straight ahead, 90:
+            to the right, a camera mounted turned left), or ``"auto"``: found from the first frames
+            (:func:`~cylsfm.odometry.mount.mount_yaw`). The pose network reads the frames turned so that
+            the camera faces its motion (full-panorama models; crops are read as they are).
         batch_size: windows and pairs per call; ``device``: ``auto``, ``cpu``, ``cuda``, ``cuda:N``.
         align_config: the refinement's settings; ``progress``: show a progress bar.
 
@@ -113,7 +122,7 @@ def odometry(
         CylsfmError: an input, camera, checkpoint or dataset problem, naming the file.
     """
     started = time.perf_counter()
-    _checked(refine, camera_height, batch_size, depth_from, keyframe_every)
+    _checked(refine, camera_height, batch_size, depth_from, keyframe_every, mount_yaw)
     ride = open_ride(input, fps, stride)
     predictor = (
         checkpoint if isinstance(checkpoint, Predictor) else Predictor.from_checkpoint(checkpoint, device)
@@ -126,13 +135,19 @@ def odometry(
         )
     config = align_config or AlignConfig()
     depths = depth_files(depth_from, ride) if depth_from is not None else None
+    turnable = predictor.fov >= 360 and predictor.wrap
+    if mount_yaw != "auto" and mount_yaw and not turnable:
+        raise InputError(f"mount_yaw: a {predictor.fov:g}-degree model reads no other direction than its own")
     options = {"refine": refine, "fps": fps, "stride": stride, "keyframe_every": keyframe_every}
+    options["mount_yaw"] = mount_yaw
     options["ground_fit"] = camera_height is not None  # the depth of every frame is needed for it
     depth_scale = camera_height if save_depth_maps else None
     settings = _settings(ride, checkpoint, plan, config, depth_from, options, save_depth_maps, depth_scale)
     dest = Path(out)
     dest.mkdir(parents=True, exist_ok=True)
     state = State.load(dest / STATE_FILE, fingerprint(settings)) or State(fingerprint(settings))
+    if mount_yaw != "auto" and turnable:
+        state.mount = (math.radians(float(mount_yaw)), float("nan"), 0)
     tracker = Tracker(
         predictor,
         net_cam,
@@ -143,6 +158,7 @@ def odometry(
         keyframe_every,
         depth_of=_depth_reader(depths, predictor, net_cam) if depths is not None else None,
         need_depth=camera_height is not None,
+        find_mount=mount_yaw == "auto" and turnable,
         on_depth=_depth_writer(dest / (RAW_DEPTH if camera_height else "depth"), state)
         if save_depth_maps
         else None,
@@ -298,6 +314,11 @@ def _finish(
     comments.append(
         f"cylsfm {__version__} odometry of {ride.path}" + (", refined by direct alignment" if refine else "")
     )
+    mount = _mount_summary(state)
+    if mount is not None:
+        comments.append(
+            f"direction of travel in the panorama: {mount['yaw_deg']:.1f} deg azimuth ({mount['how']})"
+        )
     c2w = chain_poses(steps)
     times = np.asarray(state.times)
     write_tum(dest / "trajectory.txt", times, c2w, comments)
@@ -327,6 +348,7 @@ def _finish(
         "frames_per_second": len(c2w) / seconds if seconds > 0 else None,
         "timings": tracker.times.parts,
         "refinement": _refine_stats(state) if refine else None,
+        "direction_of_travel": mount,
     }
     atomic_write_text(dest / "odometry.json", json.dumps(summary, indent=2) + "\n")
     if metrics:
@@ -342,6 +364,25 @@ def _finish(
         tracker.times.parts,
         seconds,
     )
+
+
+def _mount_summary(state: State) -> dict[str, Any] | None:
+    """The direction of travel the pose network was turned to (``None``: the frames as they are)."""
+    yaw, agreement, pairs = state.mount
+    if not math.isfinite(yaw):
+        return None
+    if not pairs:
+        how = "given"
+    elif math.isfinite(agreement) and yaw == 0.0 and agreement < MOUNT_AGREEMENT:
+        how = f"not found: {pairs} pairs of frames disagree ({agreement:.0%} agree); taken as straight ahead"
+    else:
+        how = f"found in {pairs} pairs of frames, {agreement:.0%} agree"
+    return {
+        "yaw_deg": math.degrees(yaw),
+        "agreement": agreement if pairs else None,
+        "pairs": pairs,
+        "how": how,
+    }
 
 
 def _refine_stats(state: State) -> dict[str, float]:

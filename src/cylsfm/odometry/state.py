@@ -57,6 +57,9 @@ class State:
     tail_depths: list[np.ndarray] = field(default_factory=list)
     finished: bool = False
     rescaled: int = 0  # 1: the depth files in metres are all written
+    #: the direction of travel in the panorama (radians; nan: not known yet) and how it was found:
+    #: ``(agreement, pairs)`` of :func:`~cylsfm.odometry.mount.mount_yaw` (nan, 0: given or none)
+    mount: tuple[float, float, int] = (float("nan"), float("nan"), 0)
 
     @property
     def next_frame(self) -> int:
@@ -79,6 +82,7 @@ class State:
             "tail_depths": _stack(self.tail_depths, (0, 0, 0)).astype(np.float32),
             "finished": np.array(self.finished),
             "rescaled": np.array(self.rescaled),
+            "mount": np.array(self.mount, dtype=np.float64),
         }
         buf = io.BytesIO()
         np.savez(buf, **arrays)
@@ -102,6 +106,8 @@ class State:
                 state.tail_index = [int(i) for i in z["tail_index"]]
                 state.finished = bool(z["finished"])
                 state.rescaled = int(z["rescaled"])
+                yaw, agreement, pairs = (float(v) for v in z["mount"])
+                state.mount = (yaw, agreement, int(pairs))
         except (OSError, ValueError, KeyError):
             return None  # unreadable or from another version: start over
         return state

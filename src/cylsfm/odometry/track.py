@@ -8,6 +8,7 @@ after any chunk and continue from it.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,10 +23,13 @@ from ..geometry import Camera, compass_yaw, invert, yaw_matrix
 from ..model import Predictor
 from .align import AlignConfig, align
 from .ground import ground_height
+from .mount import mount_yaw
 from .state import State
 
 __all__ = ["Timings", "Tracker"]
 
+#: The direction of travel found is used when at least this weighted fraction of the pairs agree with it.
+MOUNT_AGREEMENT = 0.5
 #: ``(indices, network-size images [B,3,H,W], view depths [B,1,h,w])`` -> written depth files.
 DepthSink = Callable[[list[int], Tensor], None]
 
@@ -59,6 +63,9 @@ class Tracker:
         on_depth: called with each chunk's indices and view depths (to write depth files).
         need_depth: predict every frame's depth (and fit the ground) even when nothing above needs it: for
             the metric scale. Without it, refinement or depth files, the pose network runs alone.
+        find_mount: find the direction of travel in the panorama (:func:`~cylsfm.odometry.mount.mount_yaw`)
+            from the first chunk, unless the state knows it; the pose network then reads every window turned
+            so that the camera faces its motion (full panoramas only).
     """
 
     def __init__(
@@ -73,6 +80,7 @@ class Tracker:
         depth_of: Callable[[int], Tensor] | None = None,
         on_depth: DepthSink | None = None,
         need_depth: bool = True,
+        find_mount: bool = False,
     ) -> None:
         self.p = predictor
         self.camera = camera
@@ -86,6 +94,7 @@ class Tracker:
         self.need_depth = need_depth or refine or on_depth is not None
         self.depth_of = depth_of
         self.on_depth = on_depth
+        self.find_mount = find_mount and self.view.wraps
         self.k = (int(predictor.config.data.seq_length) - 1) // 2
         self.times = Timings()
         self.images: dict[int, Tensor] = {}
@@ -108,6 +117,9 @@ class Tracker:
         else:  # the network's poses alone need no depth
             depth = torch.zeros(len(indices), 1, 1, 1)
             self.state.heights += [float("nan")] * len(indices)
+        if self.find_mount and not math.isfinite(self.state.mount[0]):
+            self._mount(indices, images, depth if self.need_depth else None)
+            t = self.times.add("direction of travel", t)
         for i, im, d in zip(indices, images.cpu(), depth.cpu(), strict=True):
             self.images[i], self.depths[i] = im, d
         last = indices[-1]
@@ -121,6 +133,34 @@ class Tracker:
         self._forget(all_frames=True)
 
     # ------------------------------------------------------------------ the parts
+    @property
+    def roll(self) -> int:
+        """Columns (of the network's input) by which the pose network's frames are turned: the direction
+        of travel straight ahead (0 while it is not known)."""
+        yaw = self.state.mount[0]
+        if not math.isfinite(yaw):
+            return 0
+        return round(-yaw * self.p.size[0] / (2 * math.pi)) % self.p.size[0]
+
+    def _mount(self, indices: list[int], images: Tensor, depth: Tensor | None) -> None:
+        """Find the direction of travel in a chunk of frames (the first; nothing is changed for a chunk
+        too short for it). Where the pairs disagree (a camera that hardly moved) it is taken as straight
+        ahead."""
+        k = self.k
+        if images.shape[0] < 2 * k + 1:
+            return
+        if depth is None:
+            depth = self._depth(indices, images)
+        with torch.inference_mode():
+            tgt = images[k : images.shape[0] - k]
+            src = torch.stack([images[o : o + len(tgt)] for o in range(2 * k + 1) if o != k], 1)
+            rel = self.p.poses(tgt, src, self.camera)
+        length = float(rel[:, k, :3, 3].norm(dim=-1).median())  # the step after the target
+        found = mount_yaw(images, depth, self.view, length, self.align_config)
+        if found is not None:
+            trusted = found.agreement >= MOUNT_AGREEMENT
+            self.state.mount = (found.yaw if trusted else 0.0, found.agreement, found.pairs)
+
     def _depth(self, indices: list[int], images: Tensor) -> Tensor:
         if self.depth_of is not None:
             return torch.stack([self.depth_of(i) for i in indices])
@@ -139,7 +179,7 @@ class Tracker:
                 [torch.stack([self.images[f] for f in range(c - k, c + k + 1) if f != c]) for c in chunk]
             )
             with torch.inference_mode():
-                rel = self.p.poses(tgt, src, self.camera).double().cpu().numpy()
+                rel = self.p.poses(tgt, src, self.camera, self.roll).double().cpu().numpy()
             st.windows += list(rel)
         self.times.add("pose network", t)
 

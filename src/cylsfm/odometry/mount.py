@@ -1,0 +1,112 @@
+"""Which way the camera faces on its mount: the azimuth of the direction of travel in the panorama.
+
+A pose network trained on rides filmed facing forward reads the motion of a camera mounted turned (on the
+side of a helmet, across a car roof) badly: its translation keeps pointing where the training rides went.
+:func:`mount_yaw` finds the direction of travel from the images and their depth alone: for pairs of frames
+a few frames apart it aligns the source to the target (:func:`~cylsfm.odometry.align.align`) from
+``DIRECTIONS`` starting directions of travel around the circle, keeps the one that aligns best, and takes
+the robust (circular, weighted) median of the pairs' directions. The frames can then be turned (a yaw roll)
+so that the network sees the camera facing its motion.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..geometry import Camera, compass_yaw, yaw_matrix
+from .align import AlignConfig, align, photometric_costs
+
+__all__ = ["DIRECTIONS", "Mount", "mount_yaw"]
+
+#: Starting directions of travel tried per pair, evenly around the circle.
+DIRECTIONS = 8
+#: Frames between the two frames of a pair (more parallax than consecutive frames).
+GAP = 3
+#: Pairs aligned at most.
+PAIRS = 12
+
+
+@dataclass(frozen=True)
+class Mount:
+    """The direction of travel found by :func:`mount_yaw`.
+
+    Attributes:
+        yaw: its azimuth in radians (``atan2(x, z)`` in the camera frame: 0 straight ahead, ``+pi/2`` right).
+        agreement: the weighted fraction of the pairs whose direction lies within 30 degrees of it.
+        pairs: how many pairs were aligned.
+    """
+
+    yaw: float
+    agreement: float
+    pairs: int
+
+
+def _starts(tgt: Tensor, src: Tensor, length: float, directions: int) -> Tensor:
+    """``[B,K,4,4]``: the compass's yaw with a step of ``length`` towards each of ``K`` azimuths."""
+    b = tgt.shape[0]
+    rot = yaw_matrix(compass_yaw(tgt.float(), src.float()), dtype=torch.float64)  # [B,3,3]
+    az = torch.arange(directions, dtype=torch.float64) * (2 * math.pi / directions)
+    centres = length * torch.stack((torch.sin(az), torch.zeros_like(az), torch.cos(az)), -1)  # [K,3]
+    out = torch.eye(4, dtype=torch.float64).repeat(b, directions, 1, 1)
+    out[..., :3, :3] = rot[:, None]
+    out[..., :3, 3] = -(rot[:, None] @ centres[None, :, :, None])[..., 0]  # t = -R c
+    return out.to(tgt.device)
+
+
+def _circular_median(angles: Tensor, weights: Tensor) -> float:
+    """The angle among ``angles`` with the least weighted sum of angular distances to all of them."""
+    diff = torch.remainder(angles[:, None] - angles[None] + math.pi, 2 * math.pi) - math.pi
+    return float(angles[(diff.abs() * weights[None]).sum(1).argmin()])
+
+
+def mount_yaw(
+    images: Tensor,
+    depth: Tensor,
+    camera: Camera,
+    step_length: float,
+    config: AlignConfig | None = None,
+    gap: int = GAP,
+    pairs: int = PAIRS,
+    directions: int = DIRECTIONS,
+) -> Mount | None:
+    """The azimuth of the direction of travel over consecutive frames of a full-panorama ride.
+
+    Args:
+        images: frames ``[N,3,H,W]`` in [0, 1], in order, of a full panorama ``camera``.
+        depth: their depth ``[N,1,H,W]`` (any unit).
+        step_length: the length of one frame's step in the depth's unit (e.g. the pose network's).
+        config: the alignment's settings; gap: frames between a pair's two frames; pairs: at most this
+            many pairs, spread over the frames; directions: starting directions per pair.
+
+    Returns:
+        The :class:`Mount`, or ``None`` for too few frames (``N <= gap``).
+    """
+    n = images.shape[0]
+    if n <= gap:
+        return None
+    first = torch.linspace(0, n - 1 - gap, min(pairs, n - gap)).round().long().unique()
+    tgt, src, d = images[first], images[first + gap], depth[first]
+    starts = _starts(tgt, src, step_length * gap, directions)
+    k = directions
+    res = align(
+        tgt.repeat_interleave(k, 0),
+        src.repeat_interleave(k, 0),
+        d.repeat_interleave(k, 0),
+        starts.flatten(0, 1),
+        camera,
+        config=config,
+    )
+    found = res.poses.view(len(first), k, 4, 4)
+    costs = photometric_costs(tgt, src, d, found, camera)  # [B,K]
+    best = found[torch.arange(len(first)), costs.argmin(1)]
+    centres = -(best[:, :3, :3].transpose(1, 2) @ best[:, :3, 3:])[..., 0]
+    heading = torch.atan2(centres[:, 0], centres[:, 2])
+    weight = centres[:, [0, 2]].norm(dim=1)
+    yaw = _circular_median(heading, weight)
+    close = (torch.remainder(heading - yaw + math.pi, 2 * math.pi) - math.pi).abs() < math.radians(30)
+    agreement = float((weight * close).sum() / weight.sum().clamp(min=1e-12))
+    return Mount(yaw, agreement, len(first))

@@ -98,6 +98,35 @@ def test_synth_writes_its_split_by_sequence_and_keeps_what_exists(tmp_path, caps
         main([*args, "--split", "1,1"])
 
 
+def test_split_writes_the_parts_and_keeps_what_exists(tmp_path, capsys):
+    out = tmp_path / "data"
+    synth = ["synth", str(out), "--sequences", "4", "--frames", "8", "--width", "128", "--height", "32"]
+    assert main([*synth, "--workers", "1", "--split", "none"]) == 0
+    assert not (out / "splits").exists()
+    capsys.readouterr()
+    # training without split files names the command that writes them
+    assert main(["train", "--data", str(out), "--out", str(tmp_path / "run"), "--max-steps", "1"]) == 2
+    assert f"cylsfm split {out}" in capsys.readouterr().err
+    assert main(["split", str(out), "--mode", "frame", "--preset", "headcam", "--seed", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert "frame split" in printed and "val 0" in printed
+    parts = {}
+    for part in ("train", "val", "test"):
+        lines = (out / "splits" / "default" / f"{part}.txt").read_text().splitlines()
+        parts[part] = {tuple(line.split()) for line in lines if line and not line.startswith("#")}
+    assert parts["test"] and parts["train"] and not parts["val"]
+    # the paper's rule: no test snippet (the target and its neighbours) shares a frame with training targets
+    near = {(seq, f"{int(stem) + d:06d}") for seq, stem in parts["test"] for d in (-2, -1, 0, 1, 2)}
+    assert not near & parts["train"]
+    before = (out / "splits" / "default" / "test.txt").read_text()
+    assert main(["split", str(out)]) == 2 and "--force" in capsys.readouterr().err
+    assert (out / "splits" / "default" / "test.txt").read_text() == before
+    assert main(["split", str(out), "--force", "--fractions", "0.5", "0.25", "0.25"]) == 0
+    assert "sequence split" in capsys.readouterr().out
+    assert main(["split", str(out), "--force", "--fractions", "0.5", "0.5", "0.5"]) == 2
+    assert "fractions" in capsys.readouterr().err
+
+
 def test_resume_takes_the_runs_saved_configuration(tmp_path, capsys):
     """``train --out RUN --resume`` starts from RUN/config.yaml: data root, budget and the rest, unless a flag
     or an override changes them; a preset or --config given explicitly replaces it."""

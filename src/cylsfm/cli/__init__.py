@@ -1,6 +1,6 @@
 """The ``cylsfm`` command: one entry point, one subcommand per job, one module per subcommand.
 
-Subcommands register themselves in :data:`~cylsfm.cli.base.COMMANDS` (``camera``, ``synth``, ``train``,
+Subcommands register themselves in :data:`~cylsfm.cli.base.COMMANDS` (``camera``, ``prepare``, ``synth``, ``split``, ``train``,
 ``predict``, ``odometry``, ``evaluate``, ``export``, ``demo``); heavy imports happen inside their run functions so that
 ``cylsfm --help`` is fast. Problems with the user's input (:class:`cylsfm.errors.CylsfmError`, which the
 library raises for invalid arguments too) are reported as one line naming the file and the problem, with
@@ -14,12 +14,12 @@ import sys
 
 from .. import __version__
 from ..errors import CylsfmError
-from . import camera, demo, evaluate, export, odometry, predict, synth, train  # noqa: F401  (register the subcommands)
+from . import camera, demo, evaluate, export, odometry, predict, prepare, split, synth, train  # noqa: F401  (register the subcommands)
 from .base import COMMANDS, Command, command, parse_size
 from .train import train_config_from_args
 
 #: The order in which ``cylsfm --help`` lists the subcommands: the order of the work.
-ORDER = ("camera", "synth", "train", "predict", "odometry", "evaluate", "export", "demo")
+ORDER = ("camera", "prepare", "synth", "split", "train", "predict", "odometry", "evaluate", "export", "demo")
 
 __all__ = ["COMMANDS", "Command", "build_parser", "command", "main", "parse_size", "train_config_from_args"]
 

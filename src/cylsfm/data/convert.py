@@ -33,7 +33,7 @@ from torch import Tensor
 from ..errors import InputError
 from ..geometry import Camera, CylindricalCamera, sample_image
 
-__all__ = ["plan_resampling", "to_cylinder"]
+__all__ = ["Resampler", "plan_resampling", "to_cylinder"]
 
 
 def _max_float(p: float | Tensor) -> float:
@@ -98,27 +98,100 @@ def to_cylinder(
         camera); its colour is the mean of those samples. Invalid pixels are 0.
     """
     wrap = _check_inputs(image, src_camera, dst_camera, wrap)
-    if supersample is None:
-        (sx, sy), (kx, ky) = plan_resampling(src_camera, dst_camera, max_supersample)
-    else:
-        sx, sy = (supersample, supersample) if isinstance(supersample, int) else supersample
-        kx = ky = 1
-        if sx < 1 or sy < 1:
-            raise InputError(f"supersample must be >= 1, got {supersample}")
-
-    out_dtype = image.dtype if image.is_floating_point() else torch.float32
-    src = image.float() if out_dtype != torch.float64 else image
-    cam = src_camera
-    if kx > 1 or ky > 1:
-        # area pre-average; the resized camera describes the averaged pixels (exact when k divides the size)
-        h, w = image.shape[-2:]
-        size = (max(1, h // ky), max(1, w // kx))
-        src = F.interpolate(src, size=size, mode="area")
-        cam = src_camera.resized(size[1], size[0])
-    with torch.autocast(device_type=src.device.type, enabled=False):
-        out, mask = _sample_area(src, cam, dst_camera, (sx, sy), wrap)
-    out = out.to(out_dtype)
+    resampler = Resampler(
+        src_camera,
+        dst_camera,
+        wrap,
+        supersample=supersample,
+        max_supersample=max_supersample,
+        device=image.device,
+    )
+    out, mask = resampler(image, return_mask=True)
     return (out, mask) if return_mask else out
+
+
+class Resampler:
+    """:func:`to_cylinder` with its sampling map computed once, for many frames of one camera.
+
+    The destination's (supersampled) rays, their projections into the (pre-averaged) source and the
+    projectability mask are computed at construction; a call only pre-averages, samples and averages.
+
+    Args:
+        src_camera, dst_camera, wrap, supersample, max_supersample: as for :func:`to_cylinder` (``wrap``
+            ``None``: when the source covers a full turn).
+        device: where the map lives (the images' device).
+    """
+
+    def __init__(
+        self,
+        src_camera: Camera,
+        dst_camera: CylindricalCamera,
+        wrap: bool | None = None,
+        *,
+        supersample: int | tuple[int, int] | None = None,
+        max_supersample: int = 4,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        if not isinstance(dst_camera, CylindricalCamera):
+            raise TypeError(f"dst_camera must be a CylindricalCamera, got {type(dst_camera).__name__}")
+        if wrap and not src_camera.wraps:
+            raise InputError("wrap=True needs a source camera that covers a full turn (fx * 2 pi == width)")
+        self.wrap = src_camera.wraps if wrap is None else wrap
+        self.src_camera, self.dst_camera = src_camera, dst_camera
+        if supersample is None:
+            (sx, sy), (kx, ky) = plan_resampling(src_camera, dst_camera, max_supersample)
+        else:
+            sx, sy = (supersample, supersample) if isinstance(supersample, int) else supersample
+            kx = ky = 1
+            if sx < 1 or sy < 1:
+                raise InputError(f"supersample must be >= 1, got {supersample}")
+        self.factors = (sx, sy)
+        w, h = src_camera.size
+        # area pre-average; the resized camera describes the averaged pixels (exact when k divides the size)
+        self.averaged = (max(1, h // ky), max(1, w // kx)) if kx > 1 or ky > 1 else None
+        cam = src_camera if self.averaged is None else src_camera.resized(self.averaged[1], self.averaged[0])
+        big = (
+            dst_camera
+            if (sx, sy) == (1, 1)
+            else dst_camera.resized(dst_camera.width * sx, dst_camera.height * sy)
+        )
+        rays = big.rays(big.pixel_grid(1, device=device, dtype=torch.float64))
+        self.uv = cam.project(rays).float()  # [1 or B,2,sy H',sx W'] source pixels
+        self.ok = cam.projectable(rays)
+
+    def __call__(self, image: Tensor, return_mask: bool = False) -> Tensor | tuple[Tensor, Tensor]:
+        """``image [B,C,H,W]`` (the source camera's size) -> ``[B,C,H',W']`` (and the mask ``[B,1,H',W']``)."""
+        h, w = image.shape[-2:]
+        if image.dim() != 4 or (w, h) != self.src_camera.size:
+            raise InputError(
+                f"image must be [B,C,{self.src_camera.height},{self.src_camera.width}], got {tuple(image.shape)}"
+            )
+        out_dtype = image.dtype if image.is_floating_point() else torch.float32
+        src = image.float() if out_dtype != torch.float64 else image
+        if self.averaged is not None:
+            src = F.interpolate(src, size=self.averaged, mode="area")
+        with torch.autocast(device_type=src.device.type, enabled=False):
+            out, mask = self._sample(src)
+        out = out.to(out_dtype)
+        return (out, mask) if return_mask else out
+
+    def _sample(self, src: Tensor) -> tuple[Tensor, Tensor]:
+        """Sample ``src`` at ``sx x sy`` points per destination pixel and average each pixel's valid samples."""
+        sx, sy = self.factors
+        b = src.shape[0]
+        uv, ok = self.uv.to(src.device), self.ok.to(src.device)
+        if uv.shape[0] == 1 and b > 1:
+            uv, ok = uv.expand(b, -1, -1, -1), ok.expand(b, -1, -1, -1)
+        sampled, valid = sample_image(src, uv, self.wrap)
+        valid = valid & ok
+        weight = valid.to(sampled.dtype)
+        sampled = sampled * weight
+        if (sx, sy) == (1, 1):
+            return sampled, valid
+        frac = F.avg_pool2d(weight, (sy, sx))
+        out = F.avg_pool2d(sampled, (sy, sx)) / frac.clamp(min=1e-6)
+        mask = frac >= 0.5
+        return out * mask.to(out.dtype), mask
 
 
 def _check_inputs(image: Tensor, src_camera: Camera, dst_camera: Camera, wrap: bool | None) -> bool:
@@ -135,33 +208,3 @@ def _check_inputs(image: Tensor, src_camera: Camera, dst_camera: Camera, wrap: b
     if wrap and not src_camera.wraps:
         raise InputError("wrap=True needs a source camera that covers a full turn (fx * 2 pi == width)")
     return wrap
-
-
-def _sample_area(
-    src: Tensor, cam: Camera, dst_camera: CylindricalCamera, factors: tuple[int, int], wrap: bool
-) -> tuple[Tensor, Tensor]:
-    """Sample ``src [B,C,h,w]`` (seen by ``cam``) at ``sx x sy`` points per pixel of ``dst_camera`` and
-    average each pixel's valid samples: ``(image [B,C,H',W'], valid [B,1,H',W'] bool)``."""
-    sx, sy = factors
-    b = src.shape[0]
-    big = (
-        dst_camera
-        if (sx, sy) == (1, 1)
-        else dst_camera.resized(dst_camera.width * sx, dst_camera.height * sy)
-    )
-    grid = big.pixel_grid(1, device=src.device, dtype=torch.float64)
-    rays = big.rays(grid)
-    uv = cam.project(rays)
-    ok = cam.projectable(rays)
-    if uv.shape[0] == 1 and b > 1:
-        uv, ok = uv.expand(b, -1, -1, -1), ok.expand(b, -1, -1, -1)
-    sampled, valid = sample_image(src, uv, wrap)
-    valid = valid & ok
-    weight = valid.to(sampled.dtype)
-    sampled = sampled * weight
-    if (sx, sy) == (1, 1):
-        return sampled, valid
-    frac = F.avg_pool2d(weight, (sy, sx))
-    out = F.avg_pool2d(sampled, (sy, sx)) / frac.clamp(min=1e-6)
-    mask = frac >= 0.5
-    return out * mask.to(out.dtype), mask

@@ -187,7 +187,10 @@ class SequenceDataset(Dataset):
         if isinstance(split, str) and split in SPLIT_PARTS:
             path = split_path(self.root, split, split_name)
             if not path.exists():
-                raise DatasetError(f"{path}: split file not found (write it with cylsfm.data.make_splits)")
+                raise DatasetError(
+                    f"{path}: split file not found (write the splits with `cylsfm split {self.root}`, "
+                    "or use --split all)"
+                )
             return path
         return Path(split)
 

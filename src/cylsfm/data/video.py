@@ -14,7 +14,15 @@ import numpy as np
 
 from ..errors import CylsfmError
 
-__all__ = ["FALLBACK_RATE", "VideoWriter", "import_av", "keep_times", "probe_video", "video_frames"]
+__all__ = [
+    "FALLBACK_RATE",
+    "VideoWriter",
+    "announced_frames",
+    "import_av",
+    "keep_times",
+    "probe_video",
+    "video_frames",
+]
 
 #: Frame rate assumed (and given to previews) when a video does not tell its own.
 FALLBACK_RATE = Fraction(25)
@@ -74,11 +82,14 @@ def keep_times(fps: float | None) -> Callable[[float], bool]:
     return keep
 
 
-def video_frames(path: Path, rate: Fraction | None, fps: float | None) -> Iterator[tuple[str, np.ndarray]]:
+def video_frames(
+    path: Path, rate: Fraction | None, fps: float | None, stats: dict[str, Any] | None = None
+) -> Iterator[tuple[str, np.ndarray]]:
     """Decode ``path``: ``(FRAME, uint8 [H,W,3] RGB)`` with ``FRAME`` the 6-digit index in the video.
 
     ``rate`` (frames per second, :data:`FALLBACK_RATE` when ``None``) times frames without timestamps;
-    ``fps`` keeps about that many frames a second (:func:`keep_times`; ``None``: every frame).
+    ``fps`` keeps about that many frames a second (:func:`keep_times`; ``None``: every frame). ``stats``
+    (a dict) is kept up to date with ``decoded``, the frames decoded so far (kept or not).
     """
     av = import_av()
     frames_per_second = float(rate or FALLBACK_RATE)
@@ -100,12 +111,33 @@ def video_frames(path: Path, rate: Fraction | None, fps: float | None) -> Iterat
             except (av.FFmpegError, OSError, ValueError) as exc:
                 raise CylsfmError(f"{path}: cannot decode frame {index + 1} ({exc})") from None
             index += 1
+            if stats is not None:
+                stats["decoded"] = index + 1
             t = frame.time if frame.time is not None else index / frames_per_second
             if not keep(t):
                 continue
             yield f"{index:06d}", frame.to_ndarray(format="rgb24")
     if index < 0:
         raise CylsfmError(f"{path}: the video has no frames that can be decoded")
+
+
+def announced_frames(path: Path) -> int | None:
+    """How many frames a video's container announces: the stream's frame count, else its duration times
+    its rate (``None``: it does not say). A video that decodes fewer frames broke off."""
+    av = import_av()
+    try:
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            if stream.frames:
+                return int(stream.frames)
+            rate = stream.average_rate or stream.guessed_rate
+            if stream.duration and stream.time_base and rate:
+                return round(float(stream.duration * stream.time_base * rate))
+            if container.duration and rate:
+                return round(container.duration / 1_000_000 * float(rate))
+    except Exception:  # probe_video reported an unreadable file already
+        return None
+    return None
 
 
 class VideoWriter:

@@ -59,7 +59,9 @@ def split_entries(
     if isinstance(split, str) and split in SPLIT_PARTS:
         path = split_path(root, split, split_name)
         if not path.exists():
-            raise DatasetError(f"{path}: split file not found (write it with cylsfm.data.make_splits)")
+            raise DatasetError(
+                f"{path}: split file not found (write the splits with `cylsfm split {root}`, or use --split all)"
+            )
     else:
         path = Path(split)
     return read_split(path, root, sequences)

@@ -1,0 +1,129 @@
+"""A sequence written by ``cylsfm prepare``: resumable, idempotent, and honest about what it read.
+
+Frames are written atomically as ``images/FRAME.png`` under their source's name (a video frame's 6-digit
+index in the video, an image's stem), so that a second run finds the frames already written and skips
+them. ``prepare.json`` holds the settings (a run with other settings does not continue another's
+work), how many frames were read of how many the source announced, and whether the source broke off.
+``camera.json`` is written last: a sequence without it is unfinished (:mod:`cylsfm.data.format`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ...atomic import atomic_write_text
+from ...errors import CylsfmError
+from ...geometry import Camera
+from ..format import IMAGE_SUFFIXES
+from ..io import save_png
+
+__all__ = ["PREPARE_FILE", "PreparedSequence"]
+
+#: The preparation's record in each sequence directory.
+PREPARE_FILE = "prepare.json"
+
+
+def _key(settings: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+class PreparedSequence:
+    """One output sequence of ``cylsfm prepare``.
+
+    Args:
+        path: the sequence directory.
+        camera: the output frames' camera.
+        settings: what decides the output (JSON-serialisable): a directory prepared with other settings is
+            refused unless ``overwrite``.
+        overwrite: start over, removing what a previous preparation wrote there.
+
+    Raises:
+        CylsfmError: the directory holds another preparation or a sequence not written by ``prepare``.
+    """
+
+    def __init__(
+        self, path: str | os.PathLike[str], camera: Camera, settings: dict[str, Any], overwrite: bool
+    ) -> None:
+        self.path = Path(path)
+        self.camera = camera
+        self.key = _key(settings)
+        self.record: dict[str, Any] = {"settings": settings, "key": self.key, "finished": False}
+        record = self.path / PREPARE_FILE
+        if overwrite and self.path.exists():
+            shutil.rmtree(self.path)
+        elif record.is_file():
+            old = _read_record(record)
+            if old.get("key") != self.key:
+                raise CylsfmError(
+                    f"{self.path}: prepared with other settings ({record}); --overwrite starts it again"
+                )
+            self.record = old
+        elif (self.path / "camera.json").exists() or (self.path / "images").is_dir():
+            raise CylsfmError(
+                f"{self.path}: holds a sequence that cylsfm prepare did not write; --overwrite replaces it"
+            )
+        (self.path / "images").mkdir(parents=True, exist_ok=True)
+        self.done = {p.stem for p in (self.path / "images").iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+
+    @property
+    def finished(self) -> bool:
+        """Whether a previous run finished this sequence (nothing left to do)."""
+        return bool(self.record.get("finished")) and (self.path / "camera.json").is_file()
+
+    def has(self, frame: str) -> bool:
+        """Whether frame ``frame`` is written already."""
+        return frame in self.done
+
+    def add(self, frame: str, image: np.ndarray) -> None:
+        """Write ``images/FRAME.png`` (``uint8 [H,W,3]`` of the camera's size) atomically."""
+        w, h = self.camera.size
+        if image.shape != (h, w, 3) or image.dtype != np.uint8:
+            raise CylsfmError(
+                f"{self.path}: frame {frame} is {image.dtype} {image.shape}, expected uint8 ({h},{w},3)"
+            )
+        save_png(self.path / "images" / f"{frame}.png", image)
+        self.done.add(frame)
+
+    def last_frame(self) -> Path | None:
+        """The last frame written so far (by name), or ``None``."""
+        names = sorted(self.done)
+        if not names:
+            return None
+        return next(p for p in (self.path / "images").iterdir() if p.stem == names[-1])
+
+    def note(self, **facts: Any) -> None:
+        """Record facts about the source (frames read, expected, broke off ...) in ``prepare.json``."""
+        self.record.update(facts)
+        atomic_write_text(self.path / PREPARE_FILE, json.dumps(self.record, indent=2) + "\n")
+
+    def finish(self, mask: np.ndarray | None = None) -> None:
+        """Write ``mask.png`` (when given), ``camera.json`` last, and mark the preparation finished.
+
+        Raises:
+            CylsfmError: no frame was written.
+        """
+        if not self.done:
+            raise CylsfmError(f"{self.path}: no frames were written (every frame excluded or unreadable)")
+        if mask is not None:
+            save_png(self.path / "mask.png", np.where(mask, 255, 0).astype(np.uint8))
+        self.camera.to_json(self.path / "camera.json")
+        self.note(finished=True, frames_written=len(self.done))
+
+
+def _read_record(path: Path) -> dict[str, Any]:
+    try:
+        out = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise CylsfmError(
+            f"{path}: cannot read the preparation record ({exc}); --overwrite starts again"
+        ) from None
+    if not isinstance(out, dict):
+        raise CylsfmError(f"{path}: not a preparation record; --overwrite starts again")
+    return out

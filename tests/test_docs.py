@@ -16,7 +16,7 @@ To stay fast the documented sizes are scaled down by a fixed, stated substitutio
 * :data:`SKIPPED`: commands that are not run, each with its reason.
 
 The user's own files that the documents assume (``pano.jpg``, ``video.mp4``, ``frames/``, ``ride.mp4``,
-``ride_equirect.mp4``, the ``headcam`` dataset and ``helmet.png``) are made by :func:`_user_files`.
+``ride_equirect.mp4``, ``my360video.mp4``, the ``headcam`` dataset and ``helmet.png``) are made by :func:`_user_files`.
 """
 
 from __future__ import annotations
@@ -46,6 +46,8 @@ SUBSTITUTIONS = [
     ("--resume --minutes 60", "--resume --max-steps 2"),
     ("--minutes 60", "--max-steps 1"),
     ("--minutes 20", "--minutes 0.01"),
+    ("--minutes 120", "--max-steps 1"),
+    ("--size 512x128", "--size 128x32"),
     ("512, 128)", "256, 64)"),
     ("128, 512)", "64, 256)"),
 ]
@@ -142,7 +144,8 @@ def _user_files(root: Path) -> None:
         _png(root / "frames" / f"{i:06d}.png", 256, 64, i + 1)
     _mp4(root / "video.mp4", 256, 64)
     _mp4(root / "ride.mp4", 256, 64)
-    _mp4(root / "ride_equirect.mp4", 128, 64)
+    _mp4(root / "ride_equirect.mp4", 128, 64, frames=8)
+    _mp4(root / "my360video.mp4", 128, 64, frames=8)
     generate_dataset(root / "headcam", sequences=2, frames=8, width=128, height=32, seed=3, workers=1,
                      progress=False, splits=True, split_fractions=(0.5, 0.0, 0.5))  # fmt: skip
     mask = np.full((32, 128), 255, dtype=np.uint8)

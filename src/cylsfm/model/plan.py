@@ -5,7 +5,9 @@ span ``h`` in ``[-vfov_h, vfov_h]`` (:func:`model_vfov_h`) with the training asp
 trained on centred crops (``data.fov < 360``), the network sees only the crop of them.
 
 * Without a camera, an input must have that aspect ratio (width/height within :data:`ASPECT_TOLERANCE`);
-  it is taken as ``CylindricalCamera.full(w, h, vfov_h)``.
+  it is taken as ``CylindricalCamera.full(w, h, vfov_h)``. A 2:1 input is taken as an equirectangular
+  360-degree panorama (the usual output of 360 cameras) unless the model's own aspect is 2:1; the plan's
+  ``note`` says so.
 * A full cylindrical panorama of the training vertical field of view is used as it is.
 * Any other camera (an equirectangular 360-degree image, a cylinder of another vertical field of view, a
   partial panorama, a pinhole photograph) is resampled (:func:`cylsfm.data.convert.to_cylinder`) into the
@@ -108,6 +110,7 @@ class Plan:
 
     camera: Camera
     convert_to: CylindricalCamera | None = None
+    note: str | None = None  # how the camera was chosen, when the user did not say
 
     @property
     def network_input(self) -> Camera:
@@ -148,6 +151,9 @@ def plan_input(
     target = model_camera(predictor, vfov_h)
     want = target.width / target.height
     if camera is None:
+        if _aspect_ok(w / h, 2.0) and not _aspect_ok(want, 2.0):  # unambiguous: the whole sphere
+            note = f"{w}x{h} frames taken as equirectangular 360-degree panoramas (--camera says otherwise)"
+            return Plan(EquirectangularCamera.full(w, h), convert_to=target, note=note)
         if not _aspect_ok(w / h, want):
             raise CylsfmError(
                 f"{path}: frames are {w}x{h} (aspect {w / h:.3f}) but the model takes full 360-degree "

@@ -6,6 +6,7 @@ import json
 import math
 import os
 import shutil
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -129,43 +130,54 @@ def odometry(
     )
     plan = _plan(ride, predictor, camera)
     net_cam = plan.network_input.resized(*predictor.size)
-    if depth_from is not None and plan.convert_to is not None:
-        raise CylsfmError(
-            f"{ride.path}: ground-truth depth needs frames the model takes as they are (no conversion)"
-        )
     config = align_config or AlignConfig()
-    depths = depth_files(depth_from, ride) if depth_from is not None else None
-    turnable = predictor.fov >= 360 and predictor.wrap
-    if mount_yaw != "auto" and mount_yaw and not turnable:
-        raise InputError(f"mount_yaw: a {predictor.fov:g}-degree model reads no other direction than its own")
-    options = {"refine": refine, "fps": fps, "stride": stride, "keyframe_every": keyframe_every}
-    options["mount_yaw"] = mount_yaw
+    depths = _true_depth_files(depth_from, ride, plan)
+    turnable = _turnable(predictor, mount_yaw)
+    options = {
+        "refine": refine,
+        "fps": fps,
+        "stride": stride,
+        "keyframe_every": keyframe_every,
+        "mount_yaw": mount_yaw,
+    }
     options["ground_fit"] = camera_height is not None  # the depth of every frame is needed for it
     depth_scale = camera_height if save_depth_maps else None
     settings = _settings(ride, checkpoint, plan, config, depth_from, options, save_depth_maps, depth_scale)
-    dest = Path(out)
-    dest.mkdir(parents=True, exist_ok=True)
+    (dest := Path(out)).mkdir(parents=True, exist_ok=True)
     state = State.load(dest / STATE_FILE, fingerprint(settings)) or State(fingerprint(settings))
-    if mount_yaw != "auto" and turnable:
+    if mount_yaw != "auto" and turnable:  # given: known from the start
         state.mount = (math.radians(float(mount_yaw)), float("nan"), 0)
+    depth_of = _depth_reader(depths, predictor, net_cam) if depths is not None else None
+    writer = (
+        _depth_writer(dest / (RAW_DEPTH if camera_height else "depth"), state) if save_depth_maps else None
+    )
+    find, need = mount_yaw == "auto" and turnable, camera_height is not None
     tracker = Tracker(
-        predictor,
-        net_cam,
-        state,
-        refine,
-        config,
-        batch_size,
-        keyframe_every,
-        depth_of=_depth_reader(depths, predictor, net_cam) if depths is not None else None,
-        need_depth=camera_height is not None,
-        find_mount=mount_yaw == "auto" and turnable,
-        on_depth=_depth_writer(dest / (RAW_DEPTH if camera_height else "depth"), state)
-        if save_depth_maps
-        else None,
+        predictor, net_cam, state, refine, config, batch_size, keyframe_every, depth_of, writer, need, find
     )
     if not state.finished:
         _track(ride, plan, predictor, tracker, state, dest, progress)
     return _finish(ride, state, dest, tracker, camera_height, save_depth_maps, refine, depths, started)
+
+
+def _true_depth_files(depth_from: Any, ride: Ride, plan: Any) -> list[Path] | None:
+    """The ground-truth depth files of ``depth_from`` for the ride's frames (``None``: not asked for)."""
+    if depth_from is None:
+        return None
+    if plan.convert_to is not None:
+        raise CylsfmError(
+            f"{ride.path}: ground-truth depth needs frames the model takes as they are (no conversion)"
+        )
+    return depth_files(depth_from, ride)
+
+
+def _turnable(predictor: Predictor, mount_yaw: float | str) -> bool:
+    """Whether the pose network can read turned frames (a full-panorama model); a direction of travel
+    given for one that cannot is an error."""
+    turnable = predictor.fov >= 360 and predictor.wrap
+    if mount_yaw != "auto" and mount_yaw and not turnable:
+        raise InputError(f"mount_yaw: a {predictor.fov:g}-degree model reads no other direction than its own")
+    return turnable
 
 
 def _settings(
@@ -201,7 +213,10 @@ def _plan(ride: Ride, predictor: Predictor, camera: Any) -> Any:
     )
     if cam is None and ride.camera is not None:
         cam, cam_name = ride.camera, str(ride.path / "camera.json")
-    return plan_input(ride.path, ride.size, predictor, model_vfov_h(predictor.config), cam, cam_name)
+    plan = plan_input(ride.path, ride.size, predictor, model_vfov_h(predictor.config), cam, cam_name)
+    if plan.note:
+        print(f"{ride.path}: {plan.note}", file=sys.stderr)
+    return plan
 
 
 def _checkpoint_id(checkpoint: Any) -> str:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -101,6 +102,8 @@ def predict(
         key = (source.name, size)
         if key not in plans:
             plans[key] = plan_input(source.path, size, predictor, vfov_h, cam, camera_path)
+            if plans[key].note:
+                print(f"{source.path}: {plans[key].note}", file=sys.stderr)
         return plans[key]
 
     for source in sources:  # refuse unsuitable inputs before writing anything

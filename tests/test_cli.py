@@ -74,6 +74,11 @@ def test_camera_new_writes_each_model(tmp_path, capsys):
         == 0
     )
     assert json.loads(pin.read_text())["fx"] == pytest.approx(50.0)  # tan(45 deg) = 1: f = W / 2
+    args = ["camera", "new", str(pin), "--model", "pinhole", "--width", "100", "--height", "80"]
+    assert main([*args, "--focal", "123.5"]) == 0
+    assert json.loads(pin.read_text())["fx"] == pytest.approx(123.5)
+    assert main([*args, "--focal", "100", "--hfov", "90"]) == 2 and "--focal" in capsys.readouterr().err
+    assert main([*args, "--focal", "-3"]) == 2 and "positive" in capsys.readouterr().err
 
 
 def test_synth_writes_its_split_by_sequence_and_keeps_what_exists(tmp_path, capsys):

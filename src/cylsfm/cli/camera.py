@@ -25,7 +25,8 @@ def _camera_args(p: argparse.ArgumentParser) -> None:
         choices=["cylindrical", "equirectangular", "pinhole"],
         default="cylindrical",
         help="cylindrical (default) or equirectangular: the full 360-degree panorama of that size; "
-        "pinhole: a centred camera with square pixels and the horizontal field of view --hfov",
+        "pinhole: a centred camera with square pixels and the horizontal field of view --hfov (or the focal "
+        "length --focal)",
     )
     new.add_argument(
         "--vfov-h",
@@ -35,6 +36,9 @@ def _camera_args(p: argparse.ArgumentParser) -> None:
         "elevation)",
     )
     new.add_argument("--hfov", type=float, help="pinhole: horizontal field of view in degrees")
+    new.add_argument(
+        "--focal", type=float, metavar="PX", help="pinhole: focal length in pixels (instead of --hfov)"
+    )
 
 
 @command("camera", "write or describe a camera.json", _camera_args)
@@ -63,12 +67,21 @@ def run_camera(args: argparse.Namespace) -> int:
 
 def _new_camera(args: argparse.Namespace):
     """The camera ``cylsfm camera new`` describes."""
+    import math
+
     from ..geometry import CylindricalCamera, EquirectangularCamera, PinholeCamera
 
     if args.model == "equirectangular":
         return EquirectangularCamera.full(args.width, args.height)
     if args.model == "pinhole":
-        if args.hfov is None:
-            raise InputError("a pinhole camera needs its horizontal field of view: --hfov DEG")
+        if (args.hfov is None) == (args.focal is None):
+            raise InputError(
+                "a pinhole camera needs its horizontal field of view (--hfov DEG) or its focal length (--focal PX)"
+            )
+        if args.focal is not None:
+            if not args.focal > 0:
+                raise InputError(f"--focal must be a positive number of pixels, got {args.focal}")
+            hfov = 2 * math.degrees(math.atan(args.width / 2 / args.focal))
+            return PinholeCamera.from_fov(args.width, args.height, hfov)
         return PinholeCamera.from_fov(args.width, args.height, args.hfov)
     return CylindricalCamera.full(args.width, args.height, args.vfov_h)

@@ -146,12 +146,15 @@ def test_video_with_preview_and_fps(ckpt, tmp_path):
         assert sum(1 for _ in container.decode(video=0)) == 3
 
 
-def test_equirectangular_input_is_converted_to_the_model_cylinder(ckpt, tmp_path):
+def test_equirectangular_input_is_converted_to_the_model_cylinder(ckpt, tmp_path, capsys):
     img = _png(tmp_path / "pano.png", 256, 128)
     cam = tmp_path / "camera.json"
     EquirectangularCamera.full(256, 128).to_json(cam)
-    # without --camera a 2:1 image is refused: the model takes 4:1 cylinders
-    assert _run(ckpt, img, "--out", tmp_path / "refused") == 2
+    # without --camera a 2:1 image is taken as equirectangular (the model takes 4:1 cylinders), and said so
+    assert _run(ckpt, img, "--out", tmp_path / "auto") == 0
+    assert "taken as equirectangular" in capsys.readouterr().err
+    odd = _png(tmp_path / "odd.png", 300, 100)  # 3:1 is neither: refused
+    assert _run(ckpt, odd, "--out", tmp_path / "refused") == 2
     out = tmp_path / "out"
     assert _run(ckpt, img, "--out", out, "--camera", cam) == 0
     depth = np.load(out / "pano" / "pano.npy")

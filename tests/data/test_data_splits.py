@@ -119,7 +119,7 @@ def test_dataset_with_split_files(tmp_path):
     with pytest.warns(UserWarning, match="1 of 2 targets"):
         ds = SequenceDataset(tmp_path, split=split)
     assert ds.targets() == [("seq_a", "000002")]
-    with pytest.raises(DatasetError, match="make_splits"):
+    with pytest.raises(DatasetError, match="cylsfm split"):
         SequenceDataset(tmp_path, split="train")
     make_splits(tmp_path, name="x", fractions=(1.0, 0.0, 0.0))
     assert len(SequenceDataset(tmp_path, split="train", split_name="x")) == 4

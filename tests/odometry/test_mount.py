@@ -72,7 +72,7 @@ def test_odometry_turns_the_network_to_the_direction_found_and_says_so(frames, t
     assert "direction of travel" in (out / "trajectory.txt").read_text()
     given = cylsfm.odometry(seq, ckpt, tmp_path / "g", mount_yaw=90.0, device="cpu", progress=False)
     text = given.trajectory.read_text()
-    assert "90.0 deg azimuth (given)" in text
+    assert "90.0 deg (given)" in text
 
 
 def _untrained(tmp_path):

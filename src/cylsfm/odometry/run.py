@@ -313,8 +313,7 @@ def _finish(
     comments = []
     if camera_height is not None:
         scale, used = metric_scale(np.asarray(state.heights), camera_height)
-        steps = steps.copy()
-        steps[:, :3, 3] *= scale
+        steps = steps * np.where(np.arange(4)[:, None] < 3, [1.0, 1.0, 1.0, scale], 1.0)  # translations in m
         unit = "metres"
         comments.append(
             f"unit: metres (camera height {camera_height:g} m over the ground fitted in {used} frames: "
@@ -329,11 +328,8 @@ def _finish(
     comments.append(
         f"cylsfm {__version__} odometry of {ride.path}" + (", refined by direct alignment" if refine else "")
     )
-    mount = _mount_summary(state)
-    if mount is not None:
-        comments.append(
-            f"direction of travel in the panorama: {mount['yaw_deg']:.1f} deg azimuth ({mount['how']})"
-        )
+    if (mount := _mount_summary(state)) is not None:
+        comments.append(f"direction of travel in the panorama: {mount['yaw_deg']:.1f} deg ({mount['how']})")
     c2w = chain_poses(steps)
     times = np.asarray(state.times)
     write_tum(dest / "trajectory.txt", times, c2w, comments)
@@ -363,7 +359,7 @@ def _finish(
         "frames_per_second": len(c2w) / seconds if seconds > 0 else None,
         "timings": tracker.times.parts,
         "refinement": _refine_stats(state) if refine else None,
-        "direction_of_travel": mount,
+        "direction_of_travel": _mount_summary(state),
     }
     atomic_write_text(dest / "odometry.json", json.dumps(summary, indent=2) + "\n")
     if metrics:

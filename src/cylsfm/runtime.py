@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import sys
 from collections.abc import Iterable
 from typing import Any
@@ -10,7 +12,7 @@ import torch
 
 from .errors import CylsfmError
 
-__all__ = ["pick_device", "prefers_channels_last", "progress_bar"]
+__all__ = ["fingerprint", "pick_device", "prefers_channels_last", "progress_bar"]
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -76,3 +78,10 @@ def progress_bar(
         dynamic_ncols=True,
         file=sys.stderr,
     )
+
+
+def fingerprint(settings: dict[str, Any]) -> str:
+    """A short digest of the settings that determine a result (JSON-able values): a saved run or a prepared
+    sequence with another fingerprint is not continued."""
+    text = json.dumps(settings, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]

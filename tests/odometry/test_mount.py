@@ -55,7 +55,7 @@ def test_too_few_frames_give_no_direction(frames):
     assert mount_yaw(images[:3], depth[:3], cam, step_length=0.3) is None
 
 
-def test_odometry_turns_the_network_to_the_direction_found_and_says_so(frames, tmp_path):
+def test_odometry_turns_the_network_to_the_direction_found_and_says_so(frames, ckpt, tmp_path):
 
     cam, images, depth, poses = frames
     seq = tmp_path / "data" / "ride"
@@ -63,7 +63,6 @@ def test_odometry_turns_the_network_to_the_direction_found_and_says_so(frames, t
     for im, d in zip(roll_columns(images, 77), roll_columns(depth, 77), strict=True):
         writer.add_frame((im.permute(1, 2, 0) * 255).round().byte().numpy(), d[0].numpy())
     writer.finish(poses, timestamps=np.arange(N) * 0.2)
-    ckpt = _untrained(tmp_path)
     out = tmp_path / "o"
     cylsfm.odometry(seq, ckpt, out, refine=True, depth_from=tmp_path / "data", device="cpu", progress=False)
     summary = json.loads((out / "odometry.json").read_text())["direction_of_travel"]
@@ -73,24 +72,3 @@ def test_odometry_turns_the_network_to_the_direction_found_and_says_so(frames, t
     given = cylsfm.odometry(seq, ckpt, tmp_path / "g", mount_yaw=90.0, device="cpu", progress=False)
     text = given.trajectory.read_text()
     assert "90.0 deg (given)" in text
-
-
-def _untrained(tmp_path):
-    from cylsfm.model import build_models, save_checkpoint
-    from cylsfm.model.config import config_to_dict, preset
-
-    cfg = preset("default")
-    cfg.data.width, cfg.data.height = W, H
-    torch.manual_seed(0)
-    disp, pose = build_models(cfg)
-    path = tmp_path / "model.pt"
-    save_checkpoint(
-        path,
-        {
-            "config": config_to_dict(cfg),
-            "step": 0,
-            "disp_net": disp.state_dict(),
-            "pose_net": pose.state_dict(),
-        },
-    )
-    return path

@@ -9,39 +9,16 @@ from pathlib import Path
 import av
 import numpy as np
 import pytest
-import torch
 
 import cylsfm
 from cylsfm.cli import main
 from cylsfm.data.format import SequenceWriter
 from cylsfm.data.synth.room import make_pose, render_room
 from cylsfm.geometry import CylindricalCamera, rotation_y
-from cylsfm.model import build_models, save_checkpoint
-from cylsfm.model.config import config_to_dict, preset
 from cylsfm.odometry import run as odometry_run
 from cylsfm.odometry.track import Tracker, keyframe_steps
 
 N_FRAMES = 10
-
-
-@pytest.fixture(scope="module")
-def ckpt(tmp_path_factory) -> Path:
-    """An untrained checkpoint of the default recipe at 128x32 (its poses are noise: refinement must work)."""
-    cfg = preset("default")
-    cfg.data.width, cfg.data.height = 128, 32
-    torch.manual_seed(0)
-    disp, pose = build_models(cfg)
-    path = tmp_path_factory.mktemp("ckpt") / "model.pt"
-    save_checkpoint(
-        path,
-        {
-            "config": config_to_dict(cfg),
-            "step": 0,
-            "disp_net": disp.state_dict(),
-            "pose_net": pose.state_dict(),
-        },
-    )
-    return path
 
 
 @pytest.fixture(scope="module")

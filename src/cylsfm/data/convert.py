@@ -97,7 +97,6 @@ def to_cylinder(
         have a source (inside the source vertically, horizontally unless it wraps, and in front of a pinhole
         camera); its colour is the mean of those samples. Invalid pixels are 0.
     """
-    wrap = _check_inputs(image, src_camera, dst_camera, wrap)
     resampler = Resampler(
         src_camera,
         dst_camera,
@@ -192,19 +191,3 @@ class Resampler:
         out = F.avg_pool2d(sampled, (sy, sx)) / frac.clamp(min=1e-6)
         mask = frac >= 0.5
         return out * mask.to(out.dtype), mask
-
-
-def _check_inputs(image: Tensor, src_camera: Camera, dst_camera: Camera, wrap: bool | None) -> bool:
-    """Check the arguments of :func:`to_cylinder`; returns ``wrap`` decided."""
-    if image.dim() != 4:
-        raise InputError(f"image must be [B,C,H,W], got {tuple(image.shape)}")
-    if not isinstance(dst_camera, CylindricalCamera):
-        raise TypeError(f"dst_camera must be a CylindricalCamera, got {type(dst_camera).__name__}")
-    h, w = image.shape[-2:]
-    if (w, h) != src_camera.size:
-        raise InputError(f"image is {w}x{h} but src_camera is {src_camera.width}x{src_camera.height}")
-    if wrap is None:
-        return src_camera.wraps
-    if wrap and not src_camera.wraps:
-        raise InputError("wrap=True needs a source camera that covers a full turn (fx * 2 pi == width)")
-    return wrap

@@ -9,27 +9,18 @@ not continued, the run starts over.
 
 from __future__ import annotations
 
-import hashlib
 import io
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from ..atomic import atomic_write_bytes
 
-__all__ = ["STATE_FILE", "State", "fingerprint"]
+__all__ = ["STATE_FILE", "State"]
 
 #: The state's file name in the output directory.
 STATE_FILE = ".odometry-state.npz"
-
-
-def fingerprint(settings: dict[str, Any]) -> str:
-    """A short digest of the settings that determine a run's result (JSON-able values)."""
-    text = json.dumps(settings, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
 def _stack(rows: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -175,17 +175,21 @@ class _Frames:
     """An input's frames in order as ``(name, time or position, uint8 RGB)``, recording how many a video
     decoded and where it broke off."""
 
-    def __init__(self, source: InputSource, options: EquirectOptions) -> None:
+    def __init__(
+        self, source: InputSource, options: EquirectOptions, wanted: Callable[[str, float], bool]
+    ) -> None:
         self.source = source
         self.options = options
+        self.wanted = wanted
         self.stats: dict[str, Any] = {}
         self.broke_off: str | None = None
 
-    def __iter__(self) -> Iterator[tuple[str, float, np.ndarray]]:
+    def __iter__(self) -> Iterator[tuple[str, float, np.ndarray | None]]:
+        """Images of a folder are decoded only where ``wanted(name, position)``; ``None`` elsewhere."""
         src = self.source
         if src.kind != "video":
             for i, path in enumerate(src.images):
-                yield path.stem, float(i), load_image(path)
+                yield path.stem, float(i), load_image(path) if self.wanted(path.stem, float(i)) else None
             return
         rate = float(src.rate or FALLBACK_RATE)
         frames = video_frames(src.path, src.rate, self.options.fps, self.stats)
@@ -282,15 +286,18 @@ def _prepare_one(
         report.skipped, report.written = True, len(seq.done)
         return report
     mask = _output_mask(Path(options.mask), camera) if options.mask is not None else None
-    frames = _Frames(source, options)
+
+    def wanted(name: str, t: float) -> bool:
+        return _in_range(t, options) and name not in options.exclude and not seq.has(name)
+
+    frames = _Frames(source, options, wanted)
     convert = _Converter(seq, resample, options)
     for name, t, rgb in frames:
         bar.update(1)
         if _past_end(t, options):
             break
-        if not _in_range(t, options) or name in options.exclude or seq.has(name):
-            continue
-        convert.add(name, rgb)
+        if rgb is not None and wanted(name, t):
+            convert.add(name, rgb)
     convert.flush()
     report.written, report.dropped_static = len(seq.done), convert.dropped
     if source.kind == "video":

@@ -9,7 +9,6 @@ work), how many frames were read of how many the source announced, and whether t
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -21,6 +20,7 @@ import numpy as np
 from ...atomic import atomic_write_text
 from ...errors import CylsfmError
 from ...geometry import Camera
+from ...runtime import fingerprint
 from ..format import IMAGE_SUFFIXES
 from ..io import save_png
 
@@ -28,10 +28,6 @@ __all__ = ["PREPARE_FILE", "PreparedSequence"]
 
 #: The preparation's record in each sequence directory.
 PREPARE_FILE = "prepare.json"
-
-
-def _key(settings: dict[str, Any]) -> str:
-    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 class PreparedSequence:
@@ -53,7 +49,7 @@ class PreparedSequence:
     ) -> None:
         self.path = Path(path)
         self.camera = camera
-        self.key = _key(settings)
+        self.key = fingerprint(settings)
         self.record: dict[str, Any] = {"settings": settings, "key": self.key, "finished": False}
         record = self.path / PREPARE_FILE
         if overwrite and self.path.exists():
@@ -93,10 +89,7 @@ class PreparedSequence:
 
     def last_frame(self) -> Path | None:
         """The last frame written so far (by name), or ``None``."""
-        names = sorted(self.done)
-        if not names:
-            return None
-        return next(p for p in (self.path / "images").iterdir() if p.stem == names[-1])
+        return self.path / "images" / f"{max(self.done)}.png" if self.done else None
 
     def note(self, **facts: Any) -> None:
         """Record facts about the source (frames read, expected, broke off ...) in ``prepare.json``."""

@@ -233,13 +233,8 @@ class _Converter:
         if not self.pending:
             return
         names = [n for n, _ in self.pending]
-        if self.resample is None:
-            out = [rgb for _, rgb in self.pending]
-        else:
-            batch = torch.from_numpy(np.stack([rgb for _, rgb in self.pending])).permute(0, 3, 1, 2)
-            with torch.inference_mode():
-                conv = self.resample(batch.float())
-            out = list(conv.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy())
+        frames = [rgb for _, rgb in self.pending]
+        out = frames if self.resample is None else self.resample.frames(frames)
         self.pending.clear()
         for name, image in zip(names, out, strict=True):
             if self.options.drop_static:
@@ -292,13 +287,16 @@ def _prepare_one(
 
     frames = _Frames(source, options, wanted)
     convert = _Converter(seq, resample, options)
-    for name, t, rgb in frames:
-        bar.update(1)
-        if _past_end(t, options):
-            break
-        if rgb is not None and wanted(name, t):
-            convert.add(name, rgb)
-    convert.flush()
+    try:
+        for name, t, rgb in frames:
+            bar.update(1)
+            if _past_end(t, options):
+                break
+            if rgb is not None and wanted(name, t):
+                convert.add(name, rgb)
+        convert.flush()
+    finally:
+        seq.wait()  # frames handed to the writers are on disk (also when interrupted)
     report.written, report.dropped_static = len(seq.done), convert.dropped
     if source.kind == "video":
         report.decoded = int(frames.stats.get("decoded", 0))

@@ -12,6 +12,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +30,10 @@ __all__ = ["PREPARE_FILE", "PreparedSequence"]
 
 #: The preparation's record in each sequence directory.
 PREPARE_FILE = "prepare.json"
+#: zlib level of prepared frames: 1 writes a 2048x512 frame 2-3x faster than the default 6 for files about
+#: 15-30% larger (BENCHMARKS.md); decoding them costs the same.
+PNG_LEVEL = 1
+_WRITERS = 2
 
 
 class PreparedSequence:
@@ -67,6 +73,8 @@ class PreparedSequence:
             )
         (self.path / "images").mkdir(parents=True, exist_ok=True)
         self.done = {p.stem for p in (self.path / "images").iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+        self._writer: ThreadPoolExecutor | None = None
+        self._pending: deque[Future[None]] = deque()
 
     @property
     def finished(self) -> bool:
@@ -78,14 +86,33 @@ class PreparedSequence:
         return frame in self.done
 
     def add(self, frame: str, image: np.ndarray) -> None:
-        """Write ``images/FRAME.png`` (``uint8 [H,W,3]`` of the camera's size) atomically."""
+        """Write ``images/FRAME.png`` (``uint8 [H,W,3]`` of the camera's size) atomically.
+
+        PNG compression (the slowest step of preparing) runs on writer threads while the next frames are
+        decoded; :meth:`wait` (called by :meth:`finish`) waits for them and raises their errors.
+        """
         w, h = self.camera.size
         if image.shape != (h, w, 3) or image.dtype != np.uint8:
             raise CylsfmError(
                 f"{self.path}: frame {frame} is {image.dtype} {image.shape}, expected uint8 ({h},{w},3)"
             )
-        save_png(self.path / "images" / f"{frame}.png", image)
+        if self._writer is None:
+            self._writer = ThreadPoolExecutor(max_workers=_WRITERS, thread_name_prefix="cylsfm-png")
+        while len(self._pending) >= 2 * _WRITERS:  # bounded: at most a few frames in memory
+            self._pending.popleft().result()
+        path = self.path / "images" / f"{frame}.png"
+        self._pending.append(self._writer.submit(save_png, path, image, PNG_LEVEL))
         self.done.add(frame)
+
+    def wait(self) -> None:
+        """Wait until every frame given to :meth:`add` is written (raising the first writer's error)."""
+        try:
+            while self._pending:
+                self._pending.popleft().result()
+        finally:
+            if self._writer is not None:
+                self._writer.shutdown(wait=True, cancel_futures=True)
+                self._writer = None
 
     def last_frame(self) -> Path | None:
         """The last frame written so far (by name), or ``None``."""
@@ -102,6 +129,7 @@ class PreparedSequence:
         Raises:
             CylsfmError: no frame was written.
         """
+        self.wait()
         if not self.done:
             raise CylsfmError(f"{self.path}: no frames were written (every frame excluded or unreadable)")
         if mask is not None:

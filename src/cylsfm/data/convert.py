@@ -129,6 +129,8 @@ class Resampler:
         src_camera, dst_camera, wrap, supersample, max_supersample: as for :func:`to_cylinder` (``wrap``
             ``None``: when the source covers a full turn).
         device: where the map lives (the images' device).
+        rotation: ``[3,3]`` the source camera's axes in the destination's frame (``p_dst = R p_src``), for
+            a view turned within a rig (:mod:`cylsfm.data.stitch`); ``None``: the same axes.
     """
 
     def __init__(
@@ -140,6 +142,7 @@ class Resampler:
         supersample: int | tuple[int, int] | None = None,
         max_supersample: int = 4,
         device: torch.device | str = "cpu",
+        rotation: Tensor | np.ndarray | None = None,
     ) -> None:
         if not isinstance(dst_camera, CylindricalCamera):
             raise TypeError(f"dst_camera must be a CylindricalCamera, got {type(dst_camera).__name__}")
@@ -148,7 +151,10 @@ class Resampler:
         self.wrap = src_camera.wraps if wrap is None else wrap
         self.src_camera, self.dst_camera = src_camera, dst_camera
         self.separable: SeparableMap | None = None
-        if supersample is None and self.wrap and separable(src_camera, dst_camera):
+        turn = None if rotation is None else torch.as_tensor(rotation, dtype=torch.float64).reshape(3, 3)
+        if turn is not None and torch.equal(turn, torch.eye(3, dtype=torch.float64)):
+            turn = None
+        if supersample is None and self.wrap and turn is None and separable(src_camera, dst_camera):
             self.separable = SeparableMap(src_camera, dst_camera)
             return
         if supersample is None:
@@ -169,6 +175,8 @@ class Resampler:
             else dst_camera.resized(dst_camera.width * sx, dst_camera.height * sy)
         )
         rays = big.rays(big.pixel_grid(1, device=device, dtype=torch.float64))
+        if turn is not None:  # the destination's rays in the source's axes: R^T r
+            rays = torch.einsum("ji,bjhw->bihw", turn.to(device), rays)
         self.uv = cam.project(rays).float()  # [1 or B,2,sy H',sx W'] source pixels
         self.ok = cam.projectable(rays)
 

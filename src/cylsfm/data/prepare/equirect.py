@@ -52,6 +52,9 @@ class EquirectOptions:
         mask: a mask image (white: use) of the mount or helmet, in equirectangular (2:1) or in the
             output's cylindrical coordinates (the output's size); written as each sequence's ``mask.png``.
         exclude: frame names to leave out (a video frame's 6-digit index, an image's stem).
+        exclude_positions: frames to leave out by their position among the frames taken (0-based: the
+            k-th frame kept by ``fps`` from a video, the k-th image of a folder), as frame lists written
+            against ``ffmpeg -vf fps=N`` output number them (minus one for ffmpeg's 1-based file names).
         drop_static: leave out a frame whose grey thumbnail differs from the last kept one's by less than
             this mean absolute difference (in [0, 1]; 0: keep every frame).
         batch: frames converted at once.
@@ -65,6 +68,7 @@ class EquirectOptions:
     end: float | None = None
     mask: Path | None = None
     exclude: frozenset[str] = field(default_factory=frozenset)
+    exclude_positions: frozenset[int] = field(default_factory=frozenset)
     drop_static: float = 0.0
     batch: int = 8
 
@@ -87,6 +91,7 @@ class EquirectOptions:
             "mask": mask,
             "exclude": sorted(self.exclude),
             "drop_static": self.drop_static,
+            **({"exclude_positions": sorted(self.exclude_positions)} if self.exclude_positions else {}),
         }
 
 
@@ -176,7 +181,7 @@ class _Frames:
     decoded and where it broke off."""
 
     def __init__(
-        self, source: InputSource, options: EquirectOptions, wanted: Callable[[str, float], bool]
+        self, source: InputSource, options: EquirectOptions, wanted: Callable[[str, float, int], bool]
     ) -> None:
         self.source = source
         self.options = options
@@ -189,7 +194,7 @@ class _Frames:
         src = self.source
         if src.kind != "video":
             for i, path in enumerate(src.images):
-                yield path.stem, float(i), load_image(path) if self.wanted(path.stem, float(i)) else None
+                yield path.stem, float(i), load_image(path) if self.wanted(path.stem, float(i), i) else None
             return
         rate = float(src.rate or FALLBACK_RATE)
         frames = video_frames(src.path, src.rate, self.options.fps, self.stats)
@@ -282,17 +287,19 @@ def _prepare_one(
         return report
     mask = _output_mask(Path(options.mask), camera) if options.mask is not None else None
 
-    def wanted(name: str, t: float) -> bool:
-        return _in_range(t, options) and name not in options.exclude and not seq.has(name)
+    def wanted(name: str, t: float, position: int) -> bool:
+        if position in options.exclude_positions or name in options.exclude:
+            return False
+        return _in_range(t, options) and not seq.has(name)
 
     frames = _Frames(source, options, wanted)
     convert = _Converter(seq, resample, options)
     try:
-        for name, t, rgb in frames:
+        for position, (name, t, rgb) in enumerate(frames):
             bar.update(1)
             if _past_end(t, options):
                 break
-            if rgb is not None and wanted(name, t):
+            if rgb is not None and wanted(name, t, position):
                 convert.add(name, rgb)
         convert.flush()
     finally:

@@ -24,7 +24,7 @@ from ...errors import CylsfmError
 from ...geometry import Camera
 from ...runtime import fingerprint
 from ..format import IMAGE_SUFFIXES
-from ..io import save_png
+from ..io import save_depth, save_png, write_tum
 
 __all__ = ["PREPARE_FILE", "PreparedSequence"]
 
@@ -85,8 +85,9 @@ class PreparedSequence:
         """Whether frame ``frame`` is written already."""
         return frame in self.done
 
-    def add(self, frame: str, image: np.ndarray) -> None:
-        """Write ``images/FRAME.png`` (``uint8 [H,W,3]`` of the camera's size) atomically.
+    def add(self, frame: str, image: np.ndarray, depth: np.ndarray | None = None) -> None:
+        """Write ``images/FRAME.png`` (``uint8 [H,W,3]`` of the camera's size) atomically, and
+        ``depth/FRAME.npy`` when ``depth`` (``float32 [H,W]`` metres, 0 unknown) is given.
 
         PNG compression (the slowest step of preparing) runs on writer threads while the next frames are
         decoded; :meth:`wait` (called by :meth:`finish`) waits for them and raises their errors.
@@ -100,6 +101,11 @@ class PreparedSequence:
             self._writer = ThreadPoolExecutor(max_workers=_WRITERS, thread_name_prefix="cylsfm-png")
         while len(self._pending) >= 2 * _WRITERS:  # bounded: at most a few frames in memory
             self._pending.popleft().result()
+        if depth is not None:
+            if depth.shape != (h, w):
+                raise CylsfmError(f"{self.path}: depth of frame {frame} is {depth.shape}, expected ({h},{w})")
+            (self.path / "depth").mkdir(exist_ok=True)
+            save_depth(self.path / "depth" / f"{frame}.npy", depth)  # before the image: a frame is complete
         path = self.path / "images" / f"{frame}.png"
         self._pending.append(self._writer.submit(save_png, path, image, PNG_LEVEL))
         self.done.add(frame)
@@ -123,8 +129,12 @@ class PreparedSequence:
         self.record.update(facts)
         atomic_write_text(self.path / PREPARE_FILE, json.dumps(self.record, indent=2) + "\n")
 
-    def finish(self, mask: np.ndarray | None = None) -> None:
-        """Write ``mask.png`` (when given), ``camera.json`` last, and mark the preparation finished.
+    def finish(
+        self, mask: np.ndarray | None = None, poses: dict[str, tuple[float, np.ndarray]] | None = None
+    ) -> None:
+        """Write ``mask.png`` (when given), ``poses.txt`` (``poses``: frame name -> (time in seconds,
+        camera-to-world ``[4,4]``), for every frame written), ``camera.json`` last, and mark the
+        preparation finished.
 
         Raises:
             CylsfmError: no frame was written.
@@ -134,6 +144,17 @@ class PreparedSequence:
             raise CylsfmError(f"{self.path}: no frames were written (every frame excluded or unreadable)")
         if mask is not None:
             save_png(self.path / "mask.png", np.where(mask, 255, 0).astype(np.uint8))
+        if poses is not None:
+            names = sorted(self.done)
+            missing = [n for n in names if n not in poses]
+            if missing:
+                raise CylsfmError(f"{self.path}: no pose for frame {missing[0]}")
+            write_tum(
+                self.path / "poses.txt",
+                [poses[n][0] for n in names],
+                np.stack([poses[n][1] for n in names]),
+                comments=["camera-to-world, metres (from the source's ground truth)"],
+            )
         self.camera.to_json(self.path / "camera.json")
         self.note(finished=True, frames_written=len(self.done))
 

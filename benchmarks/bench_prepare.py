@@ -8,7 +8,7 @@ The video is written first (x264, crf 18, textured content so that decoding does
 a median over ``--repeats``:
 
 - decode: every frame decoded to RGB (PyAV, threaded, as ``prepare`` reads videos);
-- convert: the resampling of one decoded frame to the cylinder (``Resampler.frames``, the exact separable
+- convert: (median of 3x ``--repeats``, after one warm-up call) the resampling of one decoded frame to the cylinder (``Resampler.frames``, the exact separable
   box filter), and the previous supersampled bilinear map for comparison;
 - write: one PNG of the output size (``prepare``'s zlib level, on one thread; ``prepare`` writes on two);
 - prepare: ``prepare_equirect`` end to end per output frame, every frame and at the paper's 5 fps.
@@ -57,7 +57,9 @@ def _write_video(path: Path, frames: list[np.ndarray], rate: int) -> None:
             out.mux(packet)
 
 
-def _median(fn, repeats: int) -> float:
+def _median(fn, repeats: int, warm: bool = False) -> float:
+    if warm:
+        fn()  # first call: buffers allocated, pages faulted in
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
@@ -89,10 +91,10 @@ def main() -> None:
         # the supersampled bilinear map used before the separable filter (same factors as it chose)
         dense = Resampler(src, dst, supersample=plan_resampling(src, dst)[0])
 
-        t_fast = _median(lambda: fast.frames(frames[:1]), args.repeats)
+        t_fast = _median(lambda: fast.frames(frames[:1]), 3 * args.repeats, warm=True)
         t_dense = _median(lambda: dense.frames(frames[:1]), 2)
         out_image = fast.frames(frames[:1])[0]
-        t_write = _median(lambda: save_png(Path(tmp) / "w.png", out_image, PNG_LEVEL), args.repeats)
+        t_write = _median(lambda: save_png(Path(tmp) / "w.png", out_image, PNG_LEVEL), 3 * args.repeats, True)
         runs = {}
         for fps in (None, 5.0):
             opts = EquirectOptions(size=(ow, oh), fps=fps)

@@ -16,11 +16,13 @@ To stay fast the documented sizes are scaled down by a fixed, stated substitutio
 * :data:`SKIPPED`: commands that are not run, each with its reason.
 
 The user's own files that the documents assume (``pano.jpg``, ``video.mp4``, ``frames/``, ``ride.mp4``,
-``ride_equirect.mp4``, ``my360video.mp4``, the ``headcam`` dataset and ``helmet.png``) are made by :func:`_user_files`.
+``ride_equirect.mp4``, ``my360video.mp4``, the ``headcam`` dataset and ``helmet.png``, stand-ins of the
+paper's Headcam videos and SYNTHIA-Seqs, a rig of pinhole views) are made by :func:`_user_files`.
 """
 
 from __future__ import annotations
 
+import json
 import re
 import shlex
 from pathlib import Path
@@ -32,6 +34,8 @@ from PIL import Image
 
 from cylsfm.cli import main
 from cylsfm.data.synth import generate_dataset
+from cylsfm.geometry import PinholeCamera
+from synthia_standin import write_synthia_standin
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = ["README.md", "docs/usage.md"]
@@ -123,10 +127,11 @@ def _png(path: Path, width: int, height: int, seed: int) -> None:
     Image.fromarray(rng.integers(0, 256, (height, width, 3), dtype=np.uint8)).save(path)
 
 
-def _mp4(path: Path, width: int, height: int, frames: int = 3) -> None:
+def _mp4(path: Path, width: int, height: int, frames: int = 3, rate: int = 10) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(1)
     with av.open(str(path), "w") as container:
-        stream = container.add_stream("mpeg4", rate=10)
+        stream = container.add_stream("mpeg4", rate=rate)
         stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
         for _ in range(frames):
             arr = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
@@ -151,6 +156,25 @@ def _user_files(root: Path) -> None:
     mask = np.full((32, 128), 255, dtype=np.uint8)
     mask[24:] = 0  # the helmet at the bottom
     Image.fromarray(mask).save(root / "helmet.png")
+    _paper_datasets(root)
+
+
+def _paper_datasets(root: Path) -> None:
+    """Stand-ins of the Headcam videos (30 fps, two days) and its lists, SYNTHIA-Seqs, and a rig of views."""
+    for day in ("2018-10-02", "2018-10-03"):
+        _mp4(root / "Headcam" / f"{day}.mkv", 128, 64, frames=13, rate=30)
+    (root / "excluded.txt").write_text("2018-10-02 1\n2018-10-03 0\n")
+    helmet = np.full((64, 128), 255, dtype=np.uint8)
+    helmet[52:] = 0
+    Image.fromarray(helmet).save(root / "helmet_equirect.png")
+    write_synthia_standin(root / "SYNTHIA", frames=(0, 1, 2), sides=("left", "right"))
+    views = []
+    for name, yaw in (("front", 0), ("right", 90), ("back", 180), ("left", 270)):
+        for i in range(2):
+            _png(root / "rig" / name / f"{i:04d}.png", 64, 48, 10 * yaw + i)
+        views.append({"name": name, "images": name, "camera": "pinhole.json", "yaw": yaw})
+    PinholeCamera.from_fov(64, 48, 100.0).to_json(root / "rig" / "pinhole.json")
+    (root / "rig" / "rig.json").write_text(json.dumps({"views": views}))
 
 
 def run_document(document: str, where: Path, capsys) -> tuple[int, list[str]]:

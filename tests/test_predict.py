@@ -13,33 +13,21 @@ from cylsfm.cli import main
 from cylsfm.data.convert import to_cylinder
 from cylsfm.export.colorize import colorize_depth
 from cylsfm.geometry import Camera, CylindricalCamera, EquirectangularCamera, PinholeCamera
-from cylsfm.model import Predictor, build_models, save_checkpoint
-from cylsfm.model.config import config_to_dict, preset
+from cylsfm.model import Predictor
 from cylsfm.predict import MIN_COVERAGE, coverage, model_camera, predict
-
-
-def _checkpoint(directory: Path, width: int = 128, height: int = 32, fov: float = 360.0) -> Path:
-    """An untrained checkpoint trained (notionally) at ``width x height``, on ``fov``-degree crops."""
-    cfg = preset("default")
-    cfg.data.width, cfg.data.height, cfg.data.fov = width, height, fov
-    torch.manual_seed(0)
-    disp, pose = build_models(cfg)
-    path = directory / "model.pt"
-    state = {"config": config_to_dict(cfg), "step": 0, "disp_net": disp.state_dict()}
-    save_checkpoint(path, {**state, "pose_net": pose.state_dict()})
-    return path
+from helpers import untrained_checkpoint
 
 
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory) -> Path:
     """An untrained checkpoint at 128x32 (aspect 4), full panoramas."""
-    return _checkpoint(tmp_path_factory.mktemp("ckpt"))
+    return untrained_checkpoint(tmp_path_factory.mktemp("ckpt"))
 
 
 @pytest.fixture(scope="module")
 def crop_ckpt(tmp_path_factory) -> Path:
     """An untrained checkpoint of 90-degree crops of 512x32 panoramas (the network sees 128x32)."""
-    return _checkpoint(tmp_path_factory.mktemp("crop"), 512, 32, fov=90.0)
+    return untrained_checkpoint(tmp_path_factory.mktemp("crop"), 512, 32, fov=90.0)
 
 
 def _expected_depth(predictor: Predictor, rgb: np.ndarray, camera: Camera, convert_to=None) -> np.ndarray:

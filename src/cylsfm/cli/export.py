@@ -1,4 +1,5 @@
-"""``cylsfm export onnx``: the depth network as an ONNX model, checked against PyTorch."""
+"""``cylsfm export``: the depth network as ONNX; a panorama's depth as a mesh or point cloud, as
+omni-directional stereo for VR, and as a web page to look around in."""
 
 from __future__ import annotations
 
@@ -7,8 +8,24 @@ import argparse
 from .base import command
 
 
+def _depth_source(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint", help="predict the depth with this checkpoint file or run directory")
+    src.add_argument("--depth", help="the depth as a .npy file (cylindrical depth in metres, 0 unknown)")
+    p.add_argument(
+        "--camera", help="the panorama's camera.json (default: its dataset sequence's, else a full cylinder)"
+    )
+    p.add_argument(
+        "--camera-height",
+        type=float,
+        metavar="METRES",
+        help="metric scale: the camera's height above a level ground (fitted below the horizon)",
+    )
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N (default auto)")
+
+
 def _export_args(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="action", required=True, metavar="{onnx}")
+    sub = p.add_subparsers(dest="action", required=True, metavar="{onnx,mesh,stereo,viewer}")
     onnx = sub.add_parser(
         "onnx",
         help="the depth network as ONNX (image [B,3,H,W] in [0,1] -> depth [B,1,H,W]), wrap padding in "
@@ -19,9 +36,123 @@ def _export_args(p: argparse.ArgumentParser) -> None:
     onnx.add_argument("--opset", type=int, default=18, help="ONNX operator set (default 18)")
     onnx.add_argument("--no-check", action="store_true", help="do not compare with PyTorch in ONNX Runtime")
 
+    mesh = sub.add_parser("mesh", help="a panorama's depth as a coloured triangle mesh or point cloud (PLY)")
+    mesh.add_argument("pano", metavar="PANO", help="the panorama (cylindrical or equirectangular image)")
+    mesh.add_argument("out", metavar="OUT.ply", help="the PLY file to write")
+    _depth_source(mesh)
+    mesh.add_argument("--points", action="store_true", help="a point cloud (vertices only)")
+    mesh.add_argument(
+        "--max-ratio",
+        type=float,
+        default=1.2,
+        help="leave out triangles whose corners' depths differ by more than this ratio (default 1.2)",
+    )
+    mesh.add_argument("--max-depth", type=float, help="leave out pixels farther than this (e.g. the sky)")
 
-@command("export", "export a trained model for other inference engines (ONNX)", _export_args)
+    st = sub.add_parser("stereo", help="omni-directional stereo panoramas (image or video) for VR")
+    st.add_argument("pano", metavar="PANO", help="a panorama image, or a video (needs --checkpoint)")
+    st.add_argument("out", metavar="OUT", help="the image (.png) or video (.mp4) to write")
+    _depth_source(st)
+    st.add_argument("--ipd", type=float, default=0.064, help="distance between the eyes (default 0.064)")
+    st.add_argument("--layout", choices=["top-bottom", "side-by-side"], default="top-bottom")
+    st.add_argument("--equirect", action="store_true", help="equirectangular eyes (what players expect)")
+    st.add_argument("--anaglyph", action="store_true", help="also write OUT_anaglyph.png (red-cyan)")
+    st.add_argument("--width", type=int, help="the eyes' width in pixels (default: the depth's)")
+    st.add_argument(
+        "--median-depth",
+        type=float,
+        default=3.0,
+        help="relative depth is scaled to this median (one scale per video; default 3)",
+    )
+    st.add_argument("--fps", type=float, help="videos: about N frames a second (default: every frame)")
+    st.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _viewer_args(sub)
+
+
+def _viewer_args(sub) -> None:
+    vw = sub.add_parser("viewer", help="a self-contained web page to look around the 3D reconstruction")
+    vw.add_argument("pano", metavar="PANO", help="the panorama")
+    vw.add_argument("out", metavar="OUT_DIR", help="the folder to write (index.html and what it needs)")
+    _depth_source(vw)
+    vw.add_argument("--trajectory", help="a TUM trajectory (e.g. from cylsfm odometry) shown in the scene")
+    vw.add_argument("--max-ratio", type=float, default=1.2, help="as for export mesh (default 1.2)")
+
+
+@command("export", "export a model (ONNX) or a panorama's depth (mesh, VR stereo, web viewer)", _export_args)
 def run_export(args: argparse.Namespace) -> int:
+    if args.action == "onnx":
+        return _onnx(args)
+    from ..export.scene import load_scene
+
+    if args.action == "stereo" and _is_video(args.pano):
+        return _stereo_video(args)
+    scene = load_scene(args.pano, args.depth, args.checkpoint, args.camera, args.device)
+    if args.camera_height is not None and args.action != "stereo":
+        scene = scene.to_metres(args.camera_height)
+    if args.action == "mesh":
+        from ..export.mesh import build_mesh, write_ply
+
+        mesh = build_mesh(scene, args.max_ratio, args.max_depth)
+        comments = [
+            f"cylsfm export mesh of {args.pano}",
+            f"scale: {scene.scale_note}",
+            "axes: x right, y down, z forward",
+        ]
+        write_ply(mesh, args.out, comments, points=args.points)
+        what = "points" if args.points else f"vertices, {len(mesh.faces)} triangles"
+        print(f"wrote {args.out}: {len(mesh.vertices)} {what} ({scene.unit})")
+        return 0
+    if args.action == "viewer":
+        from ..export.viewer import export_viewer
+
+        page = export_viewer(scene, args.out, args.max_ratio, args.trajectory, title=args.pano)
+        print(f"wrote {page} (open it in a browser; no server needed)")
+        return 0
+    from ..export.stereo import export_stereo_image
+
+    for path in export_stereo_image(scene, args.out, _stereo_options(args)):
+        print(f"wrote {path}")
+    return 0
+
+
+def _is_video(path: str) -> bool:
+    from pathlib import Path
+
+    from ..data.inputs import discover_inputs
+
+    return Path(path).is_file() and discover_inputs([path])[0].kind == "video"
+
+
+def _stereo_options(args: argparse.Namespace):
+    from ..export.stereo import StereoOptions
+
+    return StereoOptions(
+        ipd=args.ipd,
+        layout=args.layout,
+        equirect=args.equirect,
+        anaglyph=args.anaglyph,
+        width=args.width,
+        camera_height=args.camera_height,
+        median_depth=args.median_depth,
+    )
+
+
+def _stereo_video(args: argparse.Namespace) -> int:
+    from ..errors import InputError
+    from ..export.scene import scene_function
+    from ..export.stereo import export_stereo_video
+
+    if args.checkpoint is None:
+        raise InputError(f"{args.pano}: stereo from a video needs --checkpoint (depth for every frame)")
+    scene_of = scene_function(args.pano, args.checkpoint, args.camera, args.device)
+    path, note = export_stereo_video(
+        args.pano, args.out, scene_of, _stereo_options(args), args.fps, not args.no_progress
+    )
+    print(f"wrote {path} ({note})")
+    return 0
+
+
+def _onnx(args: argparse.Namespace) -> int:
     from ..export.onnx import export_depth_onnx
 
     result = export_depth_onnx(args.checkpoint, args.out, opset=args.opset, check=not args.no_check)

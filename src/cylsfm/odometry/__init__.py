@@ -12,7 +12,7 @@ For a video, a folder of frames or a dataset sequence, :func:`odometry`:
 3. chains the steps into camera-to-world poses and writes them.
 
 Scale: network units, or metres when the camera's height above the ground is given (the ground fitted
-below the horizon in every frame's depth, :mod:`~cylsfm.odometry.ground`), or metres when the refinement
+below the horizon in every frame's depth, :mod:`~cylsfm.geometry.ground`), or metres when the refinement
 uses ground-truth depth (``depth_from``). The trajectory file's header says which.
 
 Files in ``OUT``::
@@ -33,9 +33,9 @@ The module is callable: ``cylsfm.odometry(INPUT, checkpoint=..., out=...)`` is :
 import sys
 import types
 
+from ..geometry.ground import ground_height, metric_scale
 from .align import AlignConfig, AlignResult, align
 from .frames import Ride, open_ride
-from .ground import ground_height, metric_scale
 from .run import OdometryResult, odometry
 
 __all__ = [

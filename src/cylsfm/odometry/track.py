@@ -20,9 +20,9 @@ from torch import Tensor
 
 from ..evaluate.pose_metrics import step_from_window, window_centre
 from ..geometry import Camera, compass_yaw, invert, yaw_matrix
+from ..geometry.ground import ground_height
 from ..model import Predictor
 from .align import AlignConfig, align
-from .ground import ground_height
 from .mount import mount_yaw
 from .state import State
 

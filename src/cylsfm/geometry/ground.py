@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from ..errors import InputError, check_shape
-from ..geometry import Camera
+from .cameras import Camera
 
 __all__ = ["MIN_GROUND_POINTS", "ground_height", "metric_scale"]
 

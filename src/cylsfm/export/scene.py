@@ -1,0 +1,179 @@
+"""A panorama and its depth, ready to export: from a trained checkpoint or from a depth file, in relative
+or metric scale.
+
+:func:`load_scene` reads a panorama (any image ``cylsfm predict`` takes) and either predicts its depth with
+a checkpoint (the panorama as the network sees it: converted to the model's cylinder when it is not one)
+or reads a depth file (``.npy``, cylindrical depth in metres as in the dataset format, 0 unknown) of a
+cylindrical panorama. The scale of a network's depth is unknown: :func:`Scene.to_metres` fixes it from the
+camera's height above a level ground (the fit of :func:`~cylsfm.geometry.ground.ground_height`), and
+:func:`Scene.normalised` gives one of a chosen median depth (a comfortable stereo for VR when no metres are
+known). :attr:`Scene.scale_note` says which, for the outputs' headers.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..data.io import image_size, load_depth, load_image
+from ..errors import CylsfmError, InputError
+from ..geometry import Camera, CylindricalCamera, load_camera
+from ..geometry.ground import ground_height, metric_scale
+
+__all__ = ["Scene", "load_scene", "scene_function"]
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A cylindrical panorama with depth.
+
+    Attributes:
+        image: ``uint8 [H,W,3]`` colours in ``camera``.
+        depth: ``float32 [H,W]`` cylindrical depth in ``camera`` (0: unknown, e.g. the sky of ground truth).
+        camera: the panorama's cylindrical camera.
+        unit: ``"metres"`` or ``"network units"`` (relative: one unknown scale).
+        scale_note: how the scale was found, one line for file headers.
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    camera: CylindricalCamera
+    unit: str
+    scale_note: str
+    source: tuple[np.ndarray, Camera] | None = None  # the original frame and its camera, for sharper colour
+
+    def at_width(self, width: int) -> Scene:
+        """The scene resampled to a panorama ``width`` wide (same field of view): colour from the original
+        frame when known (else from ``image``), depth interpolated where known (exact area or linear
+        filter, :class:`~cylsfm.data.convert.Resampler`)."""
+        from ..data.convert import Resampler
+
+        w, h = self.camera.size
+        if width == w:
+            return self
+        if width < 8:
+            raise InputError(f"width must be at least 8, got {width}")
+        cam = self.camera.resized(width, max(2, round(width * h / w)))
+        assert isinstance(cam, CylindricalCamera)
+        rgb, src = self.source if self.source is not None else (self.image, self.camera)
+        colour = Resampler(src, cam).frames([np.ascontiguousarray(rgb)])[0]
+        known = torch.from_numpy((self.depth > 0).astype(np.float32))[None, None]
+        d = torch.from_numpy(np.where(self.depth > 0, self.depth, 0).astype(np.float32))[None, None]
+        to = Resampler(self.camera, cam)
+        weight = to(known)
+        depth = torch.where(weight >= 0.5, to(d) / weight.clamp(min=1e-6), torch.zeros(()))
+        return replace(self, image=colour, depth=depth[0, 0].numpy().astype(np.float32), camera=cam)
+
+    @property
+    def metric(self) -> bool:
+        return self.unit == "metres"
+
+    def scaled(self, factor: float, unit: str, note: str) -> Scene:
+        return replace(self, depth=(self.depth * factor).astype(np.float32), unit=unit, scale_note=note)
+
+    def to_metres(self, camera_height: float) -> Scene:
+        """The depth rescaled so that the fitted ground lies ``camera_height`` metres below the camera.
+
+        Raises:
+            InputError: no level ground below the horizon.
+        """
+        h = ground_height(torch.from_numpy(self.depth)[None, None], self.camera).numpy()
+        factor, _ = metric_scale(h, camera_height)
+        note = (
+            f"metres: the ground fitted {h[0]:.4g} {self.unit} below the camera, set to {camera_height:g} m"
+        )
+        return self.scaled(factor, "metres", note)
+
+    def normalised(self, median: float) -> Scene:
+        """The depth rescaled to a median of ``median`` over the known pixels (unit kept as relative)."""
+        known = self.depth[self.depth > 0]
+        if not len(known):
+            raise InputError("the depth map has no known pixel")
+        factor = median / float(np.median(known))
+        return self.scaled(factor, self.unit, f"{self.scale_note}; rescaled to a median depth of {median:g}")
+
+
+def _full_cylinder(width: int, height: int, camera: Camera | None, where: str) -> CylindricalCamera:
+    if camera is None:
+        return CylindricalCamera.full(width, height)
+    if not isinstance(camera, CylindricalCamera) or not camera.wraps:
+        raise CylsfmError(f"{where}: exporting needs a full 360-degree cylindrical panorama's camera")
+    return camera if camera.size == (width, height) else camera.resized(width, height)  # type: ignore[return-value]
+
+
+def _dataset_camera(pano: Path) -> Camera | None:
+    """The ``camera.json`` of the dataset sequence a frame ``SEQ/images/X.png`` belongs to, if any."""
+    path = pano.parent.parent / "camera.json"
+    return load_camera(path) if pano.parent.name == "images" and path.is_file() else None
+
+
+def load_scene(
+    pano: str | os.PathLike[str],
+    depth: str | os.PathLike[str] | None = None,
+    checkpoint: str | os.PathLike[str] | None = None,
+    camera: str | os.PathLike[str] | None = None,
+    device: str = "auto",
+) -> Scene:
+    """The panorama ``pano`` with its depth from ``depth`` (a ``.npy`` file) or ``checkpoint``.
+
+    ``camera``: the panorama's camera.json (default: a dataset frame's sequence camera, else a full
+    cylinder of +-45 degrees for a depth file, or as ``cylsfm predict`` decides for a checkpoint).
+
+    Raises:
+        CylsfmError: naming the file: neither or both of ``depth`` and ``checkpoint``, an unreadable or
+            mismatched depth file, a camera that does not suit.
+    """
+    pano = Path(pano)
+    if (depth is None) == (checkpoint is None):
+        raise InputError("give the depth either from a checkpoint or from a depth file, not both or neither")
+    cam = load_camera(camera) if camera is not None else _dataset_camera(pano)
+    if checkpoint is not None:
+        return scene_function(pano, checkpoint, camera, device)(load_image(pano))
+    w, h = image_size(pano)
+    cyl = _full_cylinder(w, h, cam, str(camera or pano))
+    d = load_depth(Path(depth), size=(w, h))  # type: ignore[arg-type]
+    return Scene(load_image(pano), d, cyl, "metres", "metres (the depth file's)")
+
+
+def scene_function(
+    where: str | os.PathLike[str],
+    checkpoint: str | os.PathLike[str],
+    camera: str | os.PathLike[str] | None = None,
+    device: str = "auto",
+):
+    """A function ``rgb uint8 [H,W,3] -> Scene`` predicting frames of input ``where`` (a video's frames)
+    with ``checkpoint``; the plan (camera conversion) is made for the first frame's size."""
+    from ..model import Predictor
+    from ..model.plan import model_vfov_h, network_images, plan_input
+
+    predictor = Predictor.from_checkpoint(checkpoint, device)
+    if predictor.fov < 360:
+        raise CylsfmError(
+            f"{checkpoint}: the model sees {predictor.fov:g}-degree crops; exporting needs 360 degrees"
+        )
+    cam = load_camera(camera) if camera is not None else None
+    plans: dict[tuple[int, int], object] = {}
+
+    def scene_of(rgb: np.ndarray) -> Scene:
+        size = (rgb.shape[1], rgb.shape[0])
+        if size not in plans:
+            plans[size] = plan_input(
+                where, size, predictor, model_vfov_h(predictor.config), cam, str(camera or where)
+            )
+        plan = plans[size]
+        with torch.inference_mode():
+            images = network_images([rgb], plan, predictor.device)  # type: ignore[arg-type]
+            depth = predictor.depth(images, plan.network_input)[0, 0].float().cpu().numpy()  # type: ignore[attr-defined]
+        net_cam = plan.network_input  # type: ignore[attr-defined]
+        assert isinstance(net_cam, CylindricalCamera)
+        if not np.isfinite(depth).all():
+            raise CylsfmError(f"{checkpoint}: the network's depth is not finite")
+        image = (images[0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().cpu().numpy()
+        note = "relative: the network's units (one unknown scale)"
+        return Scene(image, depth, net_cam, "network units", note, source=(rgb, plan.camera))  # type: ignore[attr-defined]
+
+    return scene_of

@@ -1,0 +1,240 @@
+"""``cylsfm export mesh`` / ``stereo``: meshes whose vertices reproject to their pixels with the seam closed
+and discontinuities cut, metric scale from the camera height, ODS pairs with the analytic disparity and
+no foreground smeared into disocclusions, and the command line on ground truth and on a checkpoint."""
+
+from __future__ import annotations
+
+import math
+
+import av
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData
+
+from cylsfm.cli import main
+from cylsfm.data.io import save_png
+from cylsfm.data.synth.room import make_pose, render_room
+from cylsfm.export.mesh import build_mesh
+from cylsfm.export.ods import anaglyph, render_eye, stereo_layout
+from cylsfm.export.scene import Scene, load_scene
+from cylsfm.export.stereo import StereoOptions, _clip_factor
+from cylsfm.geometry import CylindricalCamera, EquirectangularCamera
+from cylsfm.geometry.ground import ground_height
+from helpers import untrained_checkpoint
+
+W, H = 128, 32
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    """A cylindrical render of the room (a box stands in it: depth discontinuities) with its true depth."""
+    root = tmp_path_factory.mktemp("room")
+    cam = CylindricalCamera.full(W, H)
+    image, depth = render_room(cam, make_pose(0.3, 0.1, -0.5, yaw_deg=10.0), supersample=2)
+    rgb = (image[0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
+    save_png(root / "pano.png", rgb)
+    np.save(root / "depth.npy", depth[0, 0].numpy())
+    return {"root": root, "scene": Scene(rgb, depth[0, 0].numpy(), cam, "metres", "metres (truth)")}
+
+
+def _edges(faces: np.ndarray) -> dict[tuple[int, int], int]:
+    count: dict[tuple[int, int], int] = {}
+    for a, b in np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]):
+        key = (min(a, b), max(a, b))
+        count[key] = count.get(key, 0) + 1
+    return count
+
+
+def test_mesh_reprojects_closes_the_seam_and_cuts_discontinuities(room):
+    scene = room["scene"]
+    mesh = build_mesh(scene)
+    uv = scene.camera.project(torch.from_numpy(mesh.vertices).T.reshape(1, 3, -1, 1).double())[0, :, :, 0].T
+    uv = uv.numpy()
+    du = (uv[:, 0] - mesh.pixels[:, 0] + W / 2) % W - W / 2  # column 0 is azimuth -180 = +180 degrees
+    assert np.abs(du).max() < 1e-3 and np.abs(uv[:, 1] - mesh.pixels[:, 1]).max() < 1e-3
+    assert np.allclose(mesh.colours, scene.image[mesh.pixels[:, 1], mesh.pixels[:, 0]])
+    col = mesh.pixels[:, 0]
+    seam = [(a, b) for a, b in _edges(mesh.faces) if {col[a], col[b]} == {0, W - 1}]
+    assert seam, "no triangle crosses the seam"
+    # closed: without culling the only open edges are the top and bottom rows' (a cylinder's two rims)
+    whole = build_mesh(scene, max_ratio=1e6)
+    boundary = [(a, b) for (a, b), n in _edges(whole.faces).items() if n == 1]
+    rows = whole.pixels[:, 1]
+    assert len(boundary) == 2 * W and all(rows[a] == rows[b] and rows[a] in (0, H - 1) for a, b in boundary)
+    # and the seam is like any other column: turning the panorama changes nothing
+    turned = Scene(
+        np.roll(scene.image, W // 2, 1), np.roll(scene.depth, W // 2, 1), scene.camera, "metres", ""
+    )
+    assert len(build_mesh(turned).faces) == len(mesh.faces)
+    depth = np.linalg.norm(mesh.vertices[:, [0, 2]], axis=1)
+    corner = depth[mesh.faces]
+    assert (corner.max(1) <= 1.2 * corner.min(1) + 1e-6).all()
+    uncut = build_mesh(scene, max_ratio=1e6)
+    assert len(uncut.faces) > len(mesh.faces)  # the box's silhouette: triangles bridging it were cut
+    longest = lambda m: np.linalg.norm(m.vertices[m.faces[:, 0]] - m.vertices[m.faces[:, 1]], axis=1).max()  # noqa: E731
+    assert longest(uncut) > 3 * longest(mesh)
+    # unknown depth (the sky of ground truth) gives no vertex
+    holed = Scene(
+        scene.image,
+        np.where(np.arange(W) < 10, 0.0, scene.depth).astype(np.float32),
+        scene.camera,
+        "metres",
+        "",
+    )
+    assert len(build_mesh(holed).vertices) == (W - 10) * H
+
+
+def test_metric_scale_from_the_camera_height(room):
+    scene = room["scene"]
+    height = float(ground_height(torch.from_numpy(scene.depth)[None, None], scene.camera)[0])
+    assert math.isfinite(height)
+    relative = scene.scaled(0.37, "network units", "relative")
+    metric = relative.to_metres(height)
+    assert metric.unit == "metres" and np.allclose(metric.depth, scene.depth, rtol=1e-3)
+    assert "metres" in metric.scale_note
+
+
+def test_cli_mesh_and_points_from_depth_and_checkpoint(room, tmp_path, capsys):
+    root = room["root"]
+    args = [
+        "export",
+        "mesh",
+        str(root / "pano.png"),
+        str(tmp_path / "m.ply"),
+        "--depth",
+        str(root / "depth.npy"),
+    ]
+    assert main(args) == 0
+    ply = PlyData.read(str(tmp_path / "m.ply"))
+    assert ply["vertex"].count == W * H and ply["face"].count > 0
+    assert any("scale: metres" in c for c in ply.comments)
+    assert main([*args[:3], str(tmp_path / "p.ply"), *args[4:], "--points"]) == 0
+    assert [e.name for e in PlyData.read(str(tmp_path / "p.ply")).elements] == ["vertex"]
+    ckpt = untrained_checkpoint(tmp_path)
+    assert (
+        main(["export", "mesh", str(root / "pano.png"), str(tmp_path / "n.ply"), "--checkpoint", str(ckpt)])
+        == 0
+    )
+    assert any("relative" in c for c in PlyData.read(str(tmp_path / "n.ply")).comments)
+    capsys.readouterr()
+    with pytest.raises(SystemExit):  # a depth source is required
+        main(["export", "mesh", str(root / "pano.png"), str(tmp_path / "x.ply")])
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.zeros((3, 3, 3), np.float32))
+    assert main([*args[:4], "--depth", str(bad)]) == 2
+    assert str(bad) in capsys.readouterr().err
+
+
+def _blob_scene(depth: float, width: int = 512, height: int = 128) -> Scene:
+    x = np.arange(width)
+    rgb = np.zeros((height, width, 3), np.uint8)
+    rgb[..., 0] = np.round(255 * np.exp(-0.5 * ((x - 100.3) / 3) ** 2))
+    cam = CylindricalCamera.full(width, height)
+    return Scene(rgb, np.full((height, width), depth, np.float32), cam, "metres", "")
+
+
+def _centre(image: np.ndarray) -> float:
+    row = image[image.shape[0] // 2, :, 0].astype(float)
+    return float((row * np.arange(len(row))).sum() / row.sum())
+
+
+@pytest.mark.parametrize("depth", [0.6, 2.0, 8.0])
+def test_ods_disparity_is_the_analytic_one(depth):
+    scene = _blob_scene(depth)
+    left, _ = render_eye(scene, scene.camera, 0.064, "left")
+    right, _ = render_eye(scene, scene.camera, 0.064, "right")
+    expected = 2 * math.asin(0.032 / depth) * scene.camera.width / (2 * math.pi)
+    assert abs((_centre(left) - _centre(right)) - expected) < 0.5
+    assert abs((_centre(left) + _centre(right)) / 2 - 100.3) < 0.25  # symmetric about the source
+
+
+def test_disocclusions_take_the_background():
+    w, h = 512, 64
+    rgb = np.zeros((h, w, 3), np.uint8)
+    rgb[..., 2] = 255  # blue background at 10 m
+    depth = np.full((h, w), 10.0, np.float32)
+    rgb[:, 200:240] = (255, 0, 0)  # a red foreground 40 columns wide at 0.5 m
+    depth[:, 200:240] = 0.5
+    scene = Scene(rgb, depth, CylindricalCamera.full(w, h), "metres", "")
+    for eye in ("left", "right"):
+        image, d = render_eye(scene, scene.camera, 0.064, eye)
+        red = (image[h // 2, :, 0] > 128).sum()
+        assert abs(int(red) - 40) <= 1 and (d > 0).all()  # shifted, not widened: the holes are blue
+        assert ((image[h // 2, :, 0] > 128) | (image[h // 2, :, 2] > 128)).all()
+
+
+def test_layouts_anaglyph_and_equirect():
+    scene = _blob_scene(2.0, 128, 32)
+    left, _ = render_eye(scene, scene.camera, 0.064, "left")
+    right, _ = render_eye(scene, scene.camera, 0.064, "right")
+    assert stereo_layout(left, right, "top-bottom").shape == (64, 128, 3)
+    assert stereo_layout(left, right, "side-by-side").shape == (32, 256, 3)
+    red_cyan = anaglyph(left, right)
+    assert (red_cyan[..., 0] == left[..., 0]).all() and (red_cyan[..., 1:] == right[..., 1:]).all()
+    eq, d = render_eye(scene, EquirectangularCamera.full(128, 64), 0.064, "left")
+    rows = (d > 0).any(1)
+    assert eq.shape == (64, 128, 3) and rows[32] and not rows[0] and not rows[-1]  # +-45 degrees only
+
+
+def test_cli_stereo_image_and_video(room, tmp_path, capsys):
+    root = room["root"]
+    out = tmp_path / "st.png"
+    args = ["export", "stereo", str(root / "pano.png"), str(out), "--depth", str(root / "depth.npy")]
+    assert main([*args, "--anaglyph", "--equirect", "--width", "256"]) == 0
+    assert out.is_file() and (tmp_path / "st_anaglyph.png").is_file()
+    from cylsfm.data.io import load_image
+
+    assert load_image(out).shape == (256, 256, 3)  # two 256x128 equirectangular eyes, top-bottom
+    video = tmp_path / "in.mp4"
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("mpeg4", rate=5)
+        stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
+        for k in range(3):
+            frame = np.roll(room["scene"].image, 4 * k, axis=1)
+            for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode(None):
+            container.mux(packet)
+    ckpt = untrained_checkpoint(tmp_path)
+    assert (
+        main(
+            [
+                "export",
+                "stereo",
+                str(video),
+                str(tmp_path / "st.mp4"),
+                "--checkpoint",
+                str(ckpt),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    assert "one scale for the clip" in capsys.readouterr().out
+    with av.open(str(tmp_path / "st.mp4")) as container:
+        frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    assert len(frames) == 3 and frames[0].shape == (2 * H, W, 3)
+    assert (
+        main(["export", "stereo", str(video), str(tmp_path / "x.mp4"), "--depth", str(root / "depth.npy")])
+        == 2
+    )
+
+
+def test_one_scale_for_the_clip(room):
+    scene = room["scene"]
+    frames = [scene.scaled(f, "network units", "") for f in (1.0, 2.0, 4.0)]
+    factor, note = _clip_factor(frames, StereoOptions(median_depth=3.0))
+    both = np.concatenate([f.depth.ravel() for f in frames])
+    assert abs(float(np.median(both)) * factor - 3.0) < 1e-3 and "one scale" in note
+
+
+def test_load_scene_finds_a_dataset_frames_camera(tmp_path, room):
+    seq = tmp_path / "seq"
+    (seq / "images").mkdir(parents=True)
+    cam = CylindricalCamera.full(W, H, 0.5)
+    cam.to_json(seq / "camera.json")
+    save_png(seq / "images" / "000000.png", room["scene"].image)
+    np.save(tmp_path / "d.npy", room["scene"].depth)
+    scene = load_scene(seq / "images" / "000000.png", depth=tmp_path / "d.npy")
+    assert scene.camera.to_dict() == cam.to_dict()

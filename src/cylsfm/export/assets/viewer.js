@@ -18,7 +18,10 @@
     return p;
   }
 
+  // the panorama's colours are shown as they are (sRGB values, no colour management conversion)
+  THREE.ColorManagement.enabled = false;
   var renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+  renderer.outputColorSpace = THREE.LinearSRGBColorSpace;
   renderer.setPixelRatio(window.devicePixelRatio || 1);
   renderer.setSize(window.innerWidth, window.innerHeight);
   document.body.appendChild(renderer.domElement);

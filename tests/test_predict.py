@@ -11,7 +11,7 @@ from PIL import Image
 
 from cylsfm.cli import main
 from cylsfm.data.convert import to_cylinder
-from cylsfm.export.colorize import colorize_depth
+from cylsfm.export.colorize import colorize_depth, depth_limits
 from cylsfm.geometry import Camera, CylindricalCamera, EquirectangularCamera, PinholeCamera
 from cylsfm.model import Predictor
 from cylsfm.predict import MIN_COVERAGE, coverage, model_camera, predict
@@ -96,8 +96,12 @@ def test_images_and_a_folder(ckpt, tmp_path, capsys):
         want = _expected_depth(predictor, rgb, CylindricalCamera.full(w, h, 1.0))
         np.testing.assert_allclose(depth, want, rtol=1e-4)
         with Image.open(out / name / f"{image.stem}.png") as im:
-            assert im.size == (w, h) and im.mode == "RGB"
-            np.testing.assert_array_equal(np.asarray(im), colorize_depth(depth))
+            # a readable picture: the frame above its depth, each enlarged k times to >= 1024 wide
+            k = -(-1024 // w)
+            assert im.mode == "RGB" and im.size[0] == k * w >= 1024 and im.size[1] > 2 * k * h
+            panel = np.asarray(im)[k * h + 2 : 2 * k * h + 2]
+            coloured = colorize_depth(depth, *depth_limits(depth))
+            np.testing.assert_array_equal(panel, np.repeat(np.repeat(coloured, k, 0), k, 1))
     assert sorted(p.name for p in (out / "frames").iterdir()) == [
         f"f{i:02d}.{s}" for i in range(3) for s in ("npy", "png")
     ]
@@ -248,3 +252,20 @@ def test_same_names_do_not_collide(ckpt, tmp_path):
     assert sorted(summary.frames) == ["pano", "pano-2"]
     assert (tmp_path / "out" / "pano-2" / "pano.npy").exists()
     assert json.loads(json.dumps(summary.total)) == 2
+
+
+def test_full_resolution_depth_in_the_inputs_own_camera(ckpt, tmp_path):
+    img = _png(tmp_path / "pano.png", 256, 128)  # equirectangular (2:1)
+    out = tmp_path / "out"
+    assert _run(ckpt, img, "--out", out, "--full-resolution") == 0
+    net = np.load(out / "pano" / "pano.npy")
+    full = np.load(out / "pano" / "pano_full.npy")
+    assert net.shape == (32, 128) and full.shape == (128, 256)
+    # the model sees +-45 degrees: the poles are unknown (0), the band known
+    assert (full[:20] == 0).all() and (full[-20:] == 0).all() and (full[40:88] > 0).all()
+    # at the horizon, equirectangular range equals the cylinder's depth, one network pixel per 2 columns
+    row = full[63:65].mean(0)
+    centre = net[15:17].mean(0)
+    assert np.allclose(row[::2], centre, rtol=0.15)
+    with Image.open(out / "pano" / "pano_full.png") as im:
+        assert im.size[0] == 256

@@ -109,3 +109,20 @@ def test_large_downsizing_is_antialiased():
     assert float(out.mean()) == pytest.approx(0.5, abs=0.01)
     assert float(out.std()) < 0.05 < 0.15 < float(naive.std())
     assert plan_resampling(dst, dst) == ((1, 1), (1, 1))  # same size: plain bilinear
+
+
+def test_depth_to_camera_gives_the_other_cameras_depth(room):
+    from cylsfm.data.convert import depth_to_camera
+    from cylsfm.data.synth.room import make_pose
+
+    c2w = make_pose(0.2, 0.1, -0.3, yaw_deg=15.0)
+    cyl, eq = CylindricalCamera.full(512, 128), EquirectangularCamera.full(256, 128)
+    _, d_cyl = room(cyl, c2w, supersample=1)
+    _, d_eq = room(eq, c2w, supersample=1)
+    got = depth_to_camera(d_cyl, cyl, eq)[0, 0]
+    truth = d_eq[0, 0]
+    rows = torch.arange(128).float()
+    band = (rows - 63.5).abs() * math.pi / 128 < math.radians(44)  # the cylinder's band: +-45 degrees
+    assert bool((got[:8] == 0).all()) and bool((got[-8:] == 0).all())  # the poles: not seen
+    rel = ((got - truth).abs() / truth)[band]
+    assert float(rel.median()) < 0.01 and float((rel < 0.05).float().mean()) > 0.95

@@ -20,7 +20,15 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--batch-size", type=int, default=8, help="frames per network call (default 8)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
-    p.add_argument("--no-png", action="store_true", help="do not write coloured depth pictures")
+    p.add_argument(
+        "--no-png", action="store_true", help="do not write the pictures (input and coloured depth)"
+    )
+    p.add_argument(
+        "--full-resolution",
+        action="store_true",
+        help="also write FRAME_full.npy/.png: the depth in the input's own camera and size "
+        "(equirectangular input: equirectangular depth)",
+    )
     p.add_argument("--fps", type=float, help="take about N frames a second from videos (default: all)")
 
 
@@ -36,6 +44,7 @@ def run_predict(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         device=args.device,
         png=not args.no_png,
+        full_resolution=args.full_resolution,
         fps=args.fps,
     )
     videos = f" and {len(summary.videos)} preview video(s)" if summary.videos else ""

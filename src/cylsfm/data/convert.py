@@ -40,7 +40,7 @@ from ..errors import InputError
 from ..geometry import Camera, CylindricalCamera, sample_image
 from .separable import SeparableMap, separable
 
-__all__ = ["Resampler", "plan_resampling", "to_cylinder"]
+__all__ = ["Resampler", "depth_to_camera", "plan_resampling", "to_cylinder"]
 
 
 def _max_float(p: float | Tensor) -> float:
@@ -225,3 +225,21 @@ class Resampler:
         out = F.avg_pool2d(sampled, (sy, sx)) / frac.clamp(min=1e-6)
         mask = frac >= 0.5
         return out * mask.to(out.dtype), mask
+
+
+def depth_to_camera(depth: Tensor, src_camera: CylindricalCamera, dst_camera: Camera) -> Tensor:
+    """Cylindrical depth ``[B,1,h,w]`` of ``src_camera`` as ``dst_camera``'s depth ``[B,1,H,W]`` (the same
+    centre and axes): each destination pixel's ray is looked up in the cylinder (nearest pixel, so that no
+    depth is blended across an edge) and the point there expressed in the destination's depth (range for
+    equirectangular, z for pinhole, horizontal distance for a cylinder). 0 where the cylinder does not see
+    (e.g. above and below its band) or its depth is unknown.
+    """
+    b = depth.shape[0]
+    rays = dst_camera.rays(dst_camera.pixel_grid(1, device=depth.device, dtype=torch.float64))
+    uv = src_camera.project(rays).expand(b, -1, -1, -1)
+    d, valid = sample_image(depth.double(), uv.round(), src_camera.wraps)
+    valid = valid & src_camera.projectable(rays) & (d > 0)
+    horizontal = torch.sqrt(rays[:, 0:1] ** 2 + rays[:, 2:3] ** 2).clamp(min=1e-12)
+    points = rays / horizontal * d  # cylindrical depth d: the horizontal distance of the point
+    out = dst_camera.depth_of(points)
+    return torch.where(valid, out, torch.zeros(())).to(depth.dtype)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import CylsfmError
 
-__all__ = ["colorize_depth", "side_by_side"]
+__all__ = ["colorize_depth", "depth_limits", "depth_picture", "side_by_side"]
 
 #: Percentiles of the valid inverse depth mapped to the ends of the colour map when no limit is given.
 PERCENTILES = (5.0, 95.0)
@@ -118,3 +118,77 @@ def side_by_side(images: list[np.ndarray], separator: int = 2, colour: int = 255
             rows.append(np.full((separator, width, 3), colour, dtype=np.uint8))
         rows.append(a)
     return np.ascontiguousarray(np.concatenate(rows, axis=0))
+
+
+def depth_limits(depth: np.ndarray) -> tuple[float, float] | None:
+    """The depths ``(vmin, vmax)`` :func:`colorize_depth` maps to its brightest and darkest colours by
+    default (``None`` without a valid pixel)."""
+    d = np.asarray(depth, dtype=np.float64)
+    vals = 1.0 / d[np.isfinite(d) & (d > 0)]
+    if not len(vals):
+        return None
+    p_lo, p_hi = np.percentile(vals, PERCENTILES)
+    return 1.0 / p_hi, 1.0 / p_lo
+
+
+def _ticks(vmin: float, vmax: float, n: int = 5) -> list[float]:
+    """About ``n`` round depths between ``vmin`` and ``vmax``, evenly spread in inverse depth."""
+    out = []
+    for t in np.linspace(0.0, 1.0, n):
+        inv = 1 / vmax + t * (1 / vmin - 1 / vmax)
+        d = 1 / inv
+        digits = 2 - math.floor(math.log10(d))
+        value = round(d, max(digits - 1, -6))
+        if value > 0 and (not out or value != out[-1]):
+            out.append(value)
+    return out
+
+
+def _colour_bar(width: int, vmin: float, vmax: float, unit: str, cmap: str, scale: int) -> np.ndarray:
+    """A strip: the colour map from far (left) to near (right) with depth labels below."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    title_h, bar_h, text_h = 16 * scale, 12 * scale, 16 * scale
+    ramp = np.linspace(0, 255, width).round().astype(np.intp)
+    strip = np.zeros((title_h + bar_h + text_h, width, 3), dtype=np.uint8)
+    strip[title_h : title_h + bar_h] = _lut(cmap)[ramp][None]
+    im = Image.fromarray(strip)
+    draw = ImageDraw.Draw(im)
+    try:
+        font = ImageFont.load_default(size=11 * scale)
+    except TypeError:  # Pillow < 10.1: a fixed bitmap font
+        font = ImageFont.load_default()
+    lo, hi = 1 / vmax, 1 / vmin
+    for d in _ticks(vmin, vmax):
+        x = round((1 / d - lo) / (hi - lo) * (width - 1)) if hi > lo else width // 2
+        draw.line([(x, title_h), (x, title_h + bar_h + 2 * scale)], fill=(255, 255, 255), width=1)
+        xy = (min(max(x + 2, 0), width - 40 * scale), title_h + bar_h + 2 * scale)
+        draw.text(xy, f"{d:g}", fill=(255, 255, 255), font=font)
+    draw.text((4, 2 * scale), f"depth ({unit}): far is dark, near is bright", fill=(220, 220, 220), font=font)
+    return np.asarray(im)
+
+
+def depth_picture(
+    image: np.ndarray,
+    depth: np.ndarray,
+    unit: str = "network units",
+    min_width: int = 1024,
+    cmap: str = "magma",
+) -> np.ndarray:
+    """A picture a person can read: the input above its coloured depth, both enlarged by a whole factor to
+    at least ``min_width`` pixels (the depth by repeating pixels), and a colour scale labelled in ``unit``.
+
+    ``image`` ``uint8 [H,W,3]`` and ``depth [H,W]`` are of one camera. Returns ``uint8`` RGB.
+    """
+    from PIL import Image
+
+    h, w = depth.shape
+    k = max(1, math.ceil(min_width / w))
+    limits = depth_limits(depth) or (1.0, 2.0)
+    colour = colorize_depth(depth, *limits, cmap=cmap)
+    big_depth = np.repeat(np.repeat(colour, k, 0), k, 1)
+    big_image = np.asarray(
+        Image.fromarray(np.ascontiguousarray(image)).resize((w * k, h * k), Image.Resampling.BICUBIC)
+    )
+    bar = _colour_bar(w * k, limits[0], limits[1], unit, cmap, max(1, round(w * k / 1024)))
+    return side_by_side([big_image, big_depth, bar], separator=2, colour=0)

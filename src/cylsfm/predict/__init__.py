@@ -5,7 +5,11 @@ Inputs are image files (png, jpg ...), folders (every image directly inside, sor
 name; a second input of the same name becomes ``NAME-2``) the outputs are::
 
     OUT/NAME/FRAME.npy   float32 [H,W] depth in the network's (unknown) scale, > 0
-    OUT/NAME/FRAME.png   the depth coloured by inverse depth (near = bright; cylsfm.export.colorize)
+    OUT/NAME/FRAME.png   a picture: the frame as the network sees it above its depth coloured by inverse
+                         depth (near = bright), enlarged to at least 1024 pixels wide, with a colour scale
+                         (cylsfm.export.colorize.depth_picture)
+    OUT/NAME/FRAME_full.npy, FRAME_full.png   with --full-resolution: the depth in the input's own camera
+                         and size (0 where the model does not see), and its picture
     OUT/NAME.mp4         videos only: input frame above its coloured depth (h264, or mpeg4 without libx264)
 
 ``FRAME`` is an image's file stem, or a video frame's 6-digit index in the video (counted before ``fps``

@@ -14,12 +14,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..data.convert import depth_to_camera
 from ..data.format import save_depth, save_png
 from ..data.inputs import InputSource, discover_inputs, expected_frames, read_frames
 from ..data.video import FALLBACK_RATE, VideoWriter
 from ..errors import InputError
-from ..export.colorize import colorize_depth, side_by_side
-from ..geometry import Camera, load_camera
+from ..export.colorize import colorize_depth, depth_picture, side_by_side
+from ..geometry import Camera, CylindricalCamera, load_camera
 from ..model import Predictor
 from ..model.plan import Plan, model_vfov_h, network_images, plan_input
 from ..runtime import progress_bar
@@ -65,6 +66,7 @@ def predict(
     png: bool = True,
     fps: float | None = None,
     progress: bool = True,
+    full_resolution: bool = False,
 ) -> PredictSummary:
     """Predict depth for images, image folders and videos; see :mod:`cylsfm.predict` for the outputs.
 
@@ -76,7 +78,9 @@ def predict(
             full cylindrical panoramas of the model's aspect ratio.
         batch_size: frames per network call.
         device: ``auto``, ``cpu``, ``cuda``, ``cuda:N`` (ignored for a ready predictor).
-        png: also write the coloured depth pictures.
+        png: also write the pictures (input above its coloured depth, at least 1024 wide, a colour scale).
+        full_resolution: also write ``FRAME_full.npy`` (and ``FRAME_full.png`` with ``png``), the depth in
+            the input's own camera and size (equirectangular input: equirectangular depth, the range).
         fps: take about this many frames a second from videos (and give the preview this rate); ``None``:
             every frame, at the video's own rate.
         progress: show a progress bar on stderr.
@@ -118,7 +122,8 @@ def predict(
     try:
         with torch.inference_mode():
             for source in sources:
-                _run_source(source, plan_for, predictor, out, batch_size, png, fps, bar, summary)
+                outputs = _Outputs(png, full_resolution)
+                _run_source(source, plan_for, predictor, out, batch_size, outputs, fps, bar, summary)
     finally:
         bar.close()
     return summary
@@ -130,7 +135,7 @@ def _run_source(
     predictor: Predictor,
     out: Path,
     batch_size: int,
-    png: bool,
+    outputs: _Outputs,
     fps: float | None,
     bar: Any,
     summary: PredictSummary,
@@ -148,7 +153,7 @@ def _run_source(
     def flush() -> None:
         if batch:
             h, w = batch[0][1].shape[:2]
-            _run_batch(batch, plan_for(source, (w, h)), predictor, dest, png, writer)
+            _run_batch(batch, plan_for(source, (w, h)), predictor, dest, outputs, writer)
             summary.frames[source.name] += len(batch)
             bar.update(len(batch))
             batch.clear()
@@ -174,21 +179,45 @@ def _run_batch(
     plan: Plan,
     predictor: Predictor,
     dest: Path,
-    png: bool,
+    outputs: _Outputs,
     writer: VideoWriter | None,
 ) -> None:
-    """Depth of one batch of frames of one size: ``DEST/FRAME.npy`` (and ``.png``, the video preview)."""
+    """Depth of one batch of frames of one size: ``DEST/FRAME.npy`` (and the pictures, the full-resolution
+    depth, the video preview)."""
     images = network_images([rgb for _, rgb in batch], plan, predictor.device)
     cam = plan.network_input
     depth = predictor.depth(images, cam)[:, 0].float().cpu().numpy()
-    shown = None
-    if writer is not None:
-        win = predictor.window(cam)
-        shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
-    for i, (stem, _) in enumerate(batch):
+    win = predictor.window(cam)
+    shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
+    full = _full_resolution(depth, plan, cam, win) if outputs.full else None
+    for i, (stem, rgb) in enumerate(batch):
         save_depth(dest / f"{stem}.npy", depth[i])
-        colour = colorize_depth(depth[i]) if (png or writer is not None) else None
-        if png:
-            save_png(dest / f"{stem}.png", colour)
-        if writer is not None and shown is not None:
-            writer.write(side_by_side([shown[i], colour]))
+        if outputs.png:
+            save_png(dest / f"{stem}.png", depth_picture(shown[i], depth[i], "network units"))
+        if full is not None:
+            save_depth(dest / f"{stem}_full.npy", full[i])
+            if outputs.png:
+                save_png(dest / f"{stem}_full.png", depth_picture(rgb, full[i], "network units", min_width=0))
+        if writer is not None:
+            writer.write(side_by_side([shown[i], colorize_depth(depth[i])]))
+
+
+@dataclass(frozen=True)
+class _Outputs:
+    png: bool
+    full: bool
+
+
+def _full_resolution(
+    depth: np.ndarray, plan: Plan, cam: Camera, window: tuple[int, int] | None
+) -> np.ndarray:
+    """The batch's depth ``[B,h,w]`` in the input's own camera ``[B,H,W]`` (0 where the model does not see)."""
+    d = torch.from_numpy(depth)[:, None]
+    net = cam if window is None else cam.crop(predictor_fov_deg(cam, window))  # type: ignore[attr-defined]
+    assert isinstance(net, CylindricalCamera)
+    return depth_to_camera(d, net, plan.camera)[:, 0].numpy()
+
+
+def predictor_fov_deg(cam: Camera, window: tuple[int, int]) -> float:
+    """The field of view (degrees) of a crop window of a full cylinder."""
+    return math.degrees((window[1] - window[0]) / float(cam.fx))

@@ -29,10 +29,12 @@ from torch import Tensor
 
 from .errors import InputError, check_shape
 from .geometry import Camera, column_difference, inverse_warp, pad_for_window, resize_image
+from .geometry.align import AlignConfig, align
 
 __all__ = [
     "LossConfig",
     "LossOutput",
+    "alignment_distillation",
     "explainability_loss",
     "gradient_x",
     "gradient_y",
@@ -420,3 +422,39 @@ def view_synthesis_loss(
     total = photometric + smooth + explain
     terms = {"photometric": photometric, "smooth": smooth, "explain": explain, "total": total}
     return LossOutput(total=total, terms=terms, warped=warped_log, error=error_log)
+
+
+def alignment_distillation(
+    target: Tensor, sources: Tensor, disp: Tensor, poses: Tensor, camera: Camera
+) -> Tensor:
+    """L1 distance of the pose network's poses ``[B,S,4,4]`` to their refinement by direct alignment.
+
+    Every (target, source) pair is aligned (:func:`~cylsfm.geometry.align.align`, 2 levels of 4
+    iterations) from the network's pose with the depth ``1 / disp`` (no gradient through either); the
+    term is the translation difference over the aligned step's length plus the rotation matrices'
+    absolute difference, averaged over the pairs whose alignment lowered the photometric cost.
+    """
+    b, s = poses.shape[:2]
+    with torch.no_grad():
+        depth = (1.0 / disp.float().clamp(min=1e-6)).detach()
+        h, w = depth.shape[-2:]
+        cam = camera.index(0) if isinstance(camera.fx, Tensor) and camera.fx.numel() > 1 else camera
+        if (w, h) != cam.size:
+            cam = cam.resized(w, h)
+        tgt = F.interpolate(target, size=(h, w), mode="area") if target.shape[-2:] != (h, w) else target
+        src = sources.flatten(0, 1)
+        src = F.interpolate(src, size=(h, w), mode="area") if src.shape[-2:] != (h, w) else src
+        result = align(
+            tgt.repeat_interleave(s, 0),
+            src,
+            depth.repeat_interleave(s, 0),
+            poses.detach().flatten(0, 1).double(),
+            cam,
+            config=AlignConfig(levels=2, iterations=4),
+        )
+        aligned = result.poses.float().view(b, s, 4, 4)
+        better = (result.cost < result.start_cost).float().view(b, s)
+    length = aligned[..., :3, 3].norm(dim=-1).clamp(min=1e-3)
+    t_err = (poses[..., :3, 3] - aligned[..., :3, 3]).abs().sum(-1) / length
+    r_err = (poses[..., :3, :3] - aligned[..., :3, :3]).abs().sum((-1, -2))
+    return ((t_err + r_err) * better).sum() / better.sum().clamp(min=1)

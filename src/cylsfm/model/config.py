@@ -86,6 +86,13 @@ class ModelConfig:
     prior_fade_start: int = 0
     prior_fade_end: int = 0
     prior_distill: float = 1.0
+    # Self-distillation from direct alignment: each training pair is also aligned photometrically
+    # (cylsfm.geometry.align, from the pose network's own pose, with the depth network's depth, no
+    # gradient), and the pose network is pulled towards the aligned pose by an L1 term of this weight
+    # (translation relative to the aligned step's length, rotation matrix entries), from step
+    # align_distill_start on (when the depth is worth aligning with). 0: off.
+    align_distill: float = 0.0
+    align_distill_start: int = 0
 
     def __post_init__(self) -> None:
         if self.pose_head not in ("mean", "equivariant", "auto"):
@@ -99,6 +106,8 @@ class ModelConfig:
             )
         if self.prior_distill < 0:
             raise ConfigError(f"model.prior_distill must be >= 0, got {self.prior_distill}")
+        if self.align_distill < 0 or self.align_distill_start < 0:
+            raise ConfigError("model.align_distill and model.align_distill_start must be >= 0")
 
     @property
     def scaffold(self) -> bool:

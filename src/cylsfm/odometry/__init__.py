@@ -6,7 +6,7 @@ For a video, a folder of frames or a dataset sequence, :func:`odometry`:
    resampled as for ``cylsfm predict``), predicts its depth, and runs the pose network over every window
    of ``seq_length`` frames; each consecutive step ``T_{j->j+1}`` comes from the window centred on ``j``;
 2. with ``refine``, refines each step by direct photometric alignment of frame ``j+1`` against frame ``j``
-   with frame ``j``'s depth (:mod:`~cylsfm.odometry.align`: wrap-aware, coarse to fine, robust,
+   with frame ``j``'s depth (:mod:`~cylsfm.geometry.align`: wrap-aware, coarse to fine, robust,
    Levenberg-Marquardt), starting from the network's step, or from the visual compass's yaw with the
    network's translation where that aligns better;
 3. chains the steps into camera-to-world poses and writes them.
@@ -33,8 +33,8 @@ The module is callable: ``cylsfm.odometry(INPUT, checkpoint=..., out=...)`` is :
 import sys
 import types
 
+from ..geometry.align import AlignConfig, AlignResult, align
 from ..geometry.ground import ground_height, metric_scale
-from .align import AlignConfig, AlignResult, align
 from .frames import Ride, open_ride
 from .run import OdometryResult, odometry
 

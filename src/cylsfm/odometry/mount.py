@@ -3,7 +3,7 @@
 A pose network trained on rides filmed facing forward reads the motion of a camera mounted turned (on the
 side of a helmet, across a car roof) badly: its translation keeps pointing where the training rides went.
 :func:`mount_yaw` finds the direction of travel from the images and their depth alone: for pairs of frames
-a few frames apart it aligns the source to the target (:func:`~cylsfm.odometry.align.align`) from
+a few frames apart it aligns the source to the target (:func:`~cylsfm.geometry.align.align`) from
 ``DIRECTIONS`` starting directions of travel around the circle, keeps the one that aligns best, and takes
 the robust (circular, weighted) median of the pairs' directions. The frames can then be turned (a yaw roll)
 so that the network sees the camera facing its motion.
@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ..geometry import Camera, compass_yaw, yaw_matrix
-from .align import AlignConfig, align, photometric_costs
+from ..geometry.align import AlignConfig, align, photometric_costs
 
 __all__ = ["DIRECTIONS", "Mount", "mount_yaw"]
 

@@ -22,11 +22,11 @@ from ..data.io import write_tum
 from ..errors import CylsfmError, InputError
 from ..evaluate.pose_metrics import chain_poses
 from ..geometry import Camera, load_camera
+from ..geometry.align import AlignConfig, resize_depth
 from ..geometry.ground import metric_scale
 from ..model import Predictor
 from ..model.plan import model_vfov_h, network_images, plan_input
 from ..runtime import fingerprint, progress_bar
-from .align import AlignConfig, resize_depth
 from .frames import Ride, depth_files, open_ride
 from .report import ride_metrics, top_view
 from .state import STATE_FILE, State

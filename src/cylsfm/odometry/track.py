@@ -20,9 +20,9 @@ from torch import Tensor
 
 from ..evaluate.pose_metrics import step_from_window, window_centre
 from ..geometry import Camera, compass_yaw, invert, yaw_matrix
+from ..geometry.align import AlignConfig, align
 from ..geometry.ground import ground_height
 from ..model import Predictor
-from .align import AlignConfig, align
 from .mount import mount_yaw
 from .state import State
 
@@ -53,7 +53,7 @@ class Tracker:
         predictor: the networks.
         camera: the camera of the network-size frames given to :meth:`push` (``predictor.size``).
         state: where the results go (a new or a loaded state).
-        refine: refine each step by :func:`~cylsfm.odometry.align.align`.
+        refine: refine each step by :func:`~cylsfm.geometry.align.align`.
         align_config: its settings.
         batch_size: windows / pairs per call.
         keyframe_every: refine each frame against a keyframe, a new one every this many frames (1: each

@@ -34,7 +34,7 @@ from ..data.format import load_mask
 from ..data.strips import StripDataset, is_strip_dataset
 from ..errors import CylsfmError
 from ..geometry import Camera, pose_vec_to_mat
-from ..losses import image_pyramid, standing_still_loss, view_synthesis_loss
+from ..losses import alignment_distillation, image_pyramid, standing_still_loss, view_synthesis_loss
 from ..model.build import build_models
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.config import TrainConfig, config_from_dict, config_to_dict, resumed_config, save_config
@@ -252,6 +252,9 @@ class Trainer:
             weight = self.cfg.model.prior_distill * pose_net.prior_weight
             extra["scaffold"] = weight * pose_net.scaffold_gap.float().abs().mean()
             pose_net.scaffold_gap = None  # the graph is the loss's alone
+        weight = self.cfg.model.align_distill
+        if weight > 0 and self.step >= self.cfg.model.align_distill_start:
+            extra["align"] = weight * alignment_distillation(tgt32, src.float(), disps[0], poses, cam)
         if self.cfg.data.still > 0:  # samples of a standing camera: sources identical to the target
             still = (src == tgt[:, None]).flatten(1).all(1)
             extra["still"] = loss_cfg.still_weight * standing_still_loss(pose_vec.float(), still)

@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..errors import InputError, ShapeError, check_shape
-from ..geometry import (
+from . import (
     Camera,
     axis_angle_to_matrix,
     circular_pad,

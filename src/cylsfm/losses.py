@@ -425,14 +425,15 @@ def view_synthesis_loss(
 
 
 def alignment_distillation(
-    target: Tensor, sources: Tensor, disp: Tensor, poses: Tensor, camera: Camera
+    target: Tensor, sources: Tensor, disp: Tensor, poses: Tensor, camera: Camera, terms: str = "pose"
 ) -> Tensor:
     """L1 distance of the pose network's poses ``[B,S,4,4]`` to their refinement by direct alignment.
 
     Every (target, source) pair is aligned (:func:`~cylsfm.geometry.align.align`, 2 levels of 4
     iterations) from the network's pose with the depth ``1 / disp`` (no gradient through either); the
     term is the translation difference over the aligned step's length plus the rotation matrices'
-    absolute difference, averaged over the pairs whose alignment lowered the photometric cost.
+    absolute difference (``terms="direction"``: the L1 distance of the unit translation directions
+    only), averaged over the pairs whose alignment lowered the photometric cost.
     """
     b, s = poses.shape[:2]
     with torch.no_grad():
@@ -455,6 +456,10 @@ def alignment_distillation(
         aligned = result.poses.float().view(b, s, 4, 4)
         better = (result.cost < result.start_cost).float().view(b, s)
     length = aligned[..., :3, 3].norm(dim=-1).clamp(min=1e-3)
+    if terms == "direction":
+        own = poses[..., :3, 3] / poses[..., :3, 3].norm(dim=-1, keepdim=True).clamp(min=1e-6)
+        err = (own - aligned[..., :3, 3] / length[..., None]).abs().sum(-1)
+        return (err * better).sum() / better.sum().clamp(min=1)
     t_err = (poses[..., :3, 3] - aligned[..., :3, 3]).abs().sum(-1) / length
     r_err = (poses[..., :3, :3] - aligned[..., :3, :3]).abs().sum((-1, -2))
     return ((t_err + r_err) * better).sum() / better.sum().clamp(min=1)

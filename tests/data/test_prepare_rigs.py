@@ -226,3 +226,27 @@ def test_headcam_five_fps_excluded_frames_and_split(tmp_path, capsys):
     assert "name the video" in capsys.readouterr().err
     assert main(["prepare", "headcam", str(tmp_path / "excluded.txt"), str(out1)]) == 2
     assert "folder not found" in capsys.readouterr().err
+
+
+def test_abutting_cube_faces_leave_no_seam():
+    from cylsfm.data.stitch import Stitcher, View
+
+    face = PinholeCamera.from_fov(64, 64, 90.0)  # four faces meeting exactly at their outer edges
+    views = [View(str(yaw), face, view_rotation(yaw)) for yaw in (0.0, 90.0, 180.0, 270.0)]
+    for width in (256, 512):  # seams on pixel centres (width % 8 == 0) and between them
+        stitcher = Stitcher(views, CylindricalCamera.full(width, 32, 0.5))
+        colour = stitcher.colour([np.full((64, 64, 3), 100, np.uint8)] * 4)
+        assert stitcher.coverage.all() and (colour == 100).all()
+
+
+def test_rig_values_are_checked(rig, tmp_path):
+    spec = json.loads(rig["rig"].read_text())
+    bad = rig["rig"].parent / "bad_values.json"
+    for change, message in (
+        ({"views": [dict(spec["views"][0], yaw="left")]}, "'yaw' must be a number"),
+        ({"fps": 0}, "'fps' must be a positive number"),
+        ({"depth_scale": "cm"}, "'depth_scale' must be a number"),
+    ):
+        bad.write_text(json.dumps({**spec, **change}))
+        with pytest.raises(CylsfmError, match=message):
+            prepare_views(bad, tmp_path / "o", progress=False)

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..errors import InputError
 from ..geometry import Camera, CylindricalCamera, EquirectangularCamera
 
 __all__ = ["SeparableMap", "separable"]
@@ -113,7 +114,7 @@ class SeparableMap:
         """
         (w_in, h_in), (w_out, h_out) = self.src_size, self.dst_size
         if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[:2] != (h_in, w_in):
-            raise ValueError(f"frame must be uint8 [{h_in},{w_in},C], got {frame.dtype} {frame.shape}")
+            raise InputError(f"a frame must be uint8 [{h_in},{w_in},C], got {frame.dtype} {frame.shape}")
         c = frame.shape[2]
         if c not in self._buffers:
             n_band = self.rows.shape[1]

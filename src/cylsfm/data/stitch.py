@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from ..errors import InputError
 from ..geometry import Camera, CylindricalCamera, PinholeCamera
@@ -70,11 +71,20 @@ class View:
 
 
 def _feather(camera: Camera, uv: torch.Tensor) -> torch.Tensor:
-    """Weight ``[...]`` of pixel positions ``uv [2,...]``: 1 at the centre, falling linearly to 0 at the border."""
+    """Weight ``[...]`` of pixel positions ``uv [2,...]``: 1 at the centre, falling linearly to 0 half a pixel
+    beyond the image's outer edge (so that a pixel on the edge, where two abutting views meet, still
+    counts)."""
     w, h = camera.size
-    wu = 1 - (2 * uv[0] - (w - 1)).abs() / w
-    wv = 1 - (2 * uv[1] - (h - 1)).abs() / h
+    wu = 1 - (2 * uv[0] - (w - 1)).abs() / (w + 1)
+    wv = 1 - (2 * uv[1] - (h - 1)).abs() / (h + 1)
     return (wu.clamp(min=0) * wv.clamp(min=0)).float()
+
+
+def _padded(camera: Camera) -> Camera:
+    """The camera of its image padded by one pixel on every side (edge pixels repeated)."""
+    return replace(
+        camera, width=camera.width + 2, height=camera.height + 2, cx=camera.cx + 1, cy=camera.cy + 1
+    )
 
 
 class Stitcher:
@@ -92,7 +102,11 @@ class Stitcher:
         if not views:
             raise InputError("a rig needs at least one view")
         self.views, self.dst = list(views), dst
-        self.colour_maps = [Resampler(v.camera, dst, wrap=False, rotation=v.rotation) for v in self.views]
+        # each view padded by one repeated pixel: rays up to its outer edge (where abutting views such as
+        # cube faces meet) have four neighbours to sample
+        self.colour_maps = [
+            Resampler(_padded(v.camera), dst, wrap=False, rotation=v.rotation) for v in self.views
+        ]
         rays = dst.rays(dst.pixel_grid(1, dtype=torch.float64))[0]  # [3,H,W] unit-cylinder rays
         best = torch.zeros(dst.height, dst.width)
         self.choice = torch.full((dst.height, dst.width), -1, dtype=torch.int64)
@@ -115,8 +129,10 @@ class Stitcher:
         for v, image, resample in zip(self.views, images, self.colour_maps, strict=True):
             if image.ndim != 3 or image.shape[2] != 3:
                 raise InputError(f"view {v.name}: an image must be [H,W,3], got {image.shape}")
-            weight = _feather(v.camera, v.camera.pixel_grid(1, dtype=torch.float64)[0])
-            rgb = torch.from_numpy(np.array(image, dtype=np.float32)).permute(2, 0, 1)
+            grid = _padded(v.camera).pixel_grid(1, dtype=torch.float64)[0] - 1  # the view's own coordinates
+            weight = _feather(v.camera, grid)
+            rgb = torch.from_numpy(np.array(image, dtype=np.float32)).permute(2, 0, 1)[None]
+            rgb = F.pad(rgb, (1, 1, 1, 1), mode="replicate")[0]
             src = torch.cat([rgb * weight, weight[None]])[None]
             with torch.inference_mode():
                 out = resample(src)[0]

@@ -82,12 +82,15 @@ def render_eye(
     v = np.round(uv[1]).astype(np.int64)
     inside = (v >= 0) & (v < out.height)
     u, v, t, cols = u[inside], v[inside], t[inside], cols[inside]
-    order = np.argsort(-t, kind="stable")  # far first: the nearest point is written last and wins
-    flat = v[order] * out.width + u[order]
+    flat = v * out.width + u
+    order = np.lexsort((t, flat))  # by pixel, nearest first
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = flat[order][1:] != flat[order][:-1]
+    keep = order[first]  # the nearest point of every pixel hit: the z-buffer
     image = np.zeros((out.height * out.width, 3), dtype=np.uint8)
     depth = np.zeros(out.height * out.width, dtype=np.float32)
-    image[flat] = cols[order]
-    depth[flat] = t[order]
+    image[flat[keep]] = cols[keep]
+    depth[flat[keep]] = t[keep]
     image, depth = image.reshape(out.height, out.width, 3), depth.reshape(out.height, out.width)
     if fill:
         image, depth = _fill_from_background(image, depth)

@@ -132,7 +132,9 @@ def load_scene(
         raise InputError("give the depth either from a checkpoint or from a depth file, not both or neither")
     cam = load_camera(camera) if camera is not None else _dataset_camera(pano)
     if checkpoint is not None:
-        return scene_function(pano, checkpoint, camera, device)(load_image(pano))
+        return scene_function(pano, checkpoint, camera if camera is not None else cam, device)(
+            load_image(pano)
+        )
     w, h = image_size(pano)
     cyl = _full_cylinder(w, h, cam, str(camera or pano))
     d = load_depth(Path(depth), size=(w, h))  # type: ignore[arg-type]
@@ -142,11 +144,12 @@ def load_scene(
 def scene_function(
     where: str | os.PathLike[str],
     checkpoint: str | os.PathLike[str],
-    camera: str | os.PathLike[str] | None = None,
+    camera: str | os.PathLike[str] | Camera | None = None,
     device: str = "auto",
 ):
     """A function ``rgb uint8 [H,W,3] -> Scene`` predicting frames of input ``where`` (a video's frames)
-    with ``checkpoint``; the plan (camera conversion) is made for the first frame's size."""
+    with ``checkpoint``; ``camera``: the frames' camera (a camera.json or a camera; ``None``: as ``cylsfm
+    predict`` decides); the plan (camera conversion) is made once per frame size."""
     from ..model import Predictor
     from ..model.plan import model_vfov_h, network_images, plan_input
 
@@ -155,15 +158,14 @@ def scene_function(
         raise CylsfmError(
             f"{checkpoint}: the model sees {predictor.fov:g}-degree crops; exporting needs 360 degrees"
         )
-    cam = load_camera(camera) if camera is not None else None
+    cam = load_camera(camera) if isinstance(camera, str | os.PathLike) else camera
+    label = str(camera) if isinstance(camera, str | os.PathLike) else str(where)
     plans: dict[tuple[int, int], object] = {}
 
     def scene_of(rgb: np.ndarray) -> Scene:
         size = (rgb.shape[1], rgb.shape[0])
         if size not in plans:
-            plans[size] = plan_input(
-                where, size, predictor, model_vfov_h(predictor.config), cam, str(camera or where)
-            )
+            plans[size] = plan_input(where, size, predictor, model_vfov_h(predictor.config), cam, label)
         plan = plans[size]
         with torch.inference_mode():
             images = network_images([rgb], plan, predictor.device)  # type: ignore[arg-type]

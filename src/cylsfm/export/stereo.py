@@ -80,22 +80,44 @@ def export_stereo_image(scene: Scene, out: str | os.PathLike[str], options: Ster
     return written
 
 
+class _ClipStatistics:
+    """What one depth scale for a whole clip needs, gathered frame by frame: a sample of every frame's
+    known depths (at most 4096 a frame) and its ground fit."""
+
+    def __init__(self, options: StereoOptions) -> None:
+        self.options = options
+        self.samples: list[np.ndarray] = []
+        self.heights: list[float] = []
+
+    def add(self, scene: Scene) -> None:
+        known = scene.depth[scene.depth > 0]
+        self.samples.append(known[:: max(1, len(known) // 4096)])
+        if self.options.camera_height is not None:
+            depth = torch.from_numpy(scene.depth)[None, None]
+            self.heights.append(float(ground_height(depth, scene.camera)[0]))
+
+    def factor(self) -> tuple[float, str]:
+        """One depth scale for the whole clip, and its note."""
+        n = len(self.samples)
+        if self.options.camera_height is not None:
+            factor, used = metric_scale(np.array(self.heights), self.options.camera_height)
+            return (
+                factor,
+                f"metres: ground fitted in {used} of {n} frames, camera {self.options.camera_height:g} m",
+            )
+        known = np.concatenate(self.samples) if self.samples else np.zeros(0)
+        if not len(known):
+            raise CylsfmError("the clip's depth has no known pixel")
+        factor = self.options.median_depth / float(np.median(known))
+        return factor, f"relative depth: one scale for the clip, median depth {self.options.median_depth:g}"
+
+
 def _clip_factor(scenes: list[Scene], options: StereoOptions) -> tuple[float, str]:
-    """One depth scale for the whole clip, and its note."""
-    if options.camera_height is not None:
-        heights = np.array(
-            [float(ground_height(torch.from_numpy(s.depth)[None, None], s.camera)[0]) for s in scenes]
-        )
-        factor, used = metric_scale(heights, options.camera_height)
-        return (
-            factor,
-            f"metres: ground fitted in {used} of {len(scenes)} frames, camera {options.camera_height:g} m",
-        )
-    known = np.concatenate([s.depth[s.depth > 0] for s in scenes])
-    if not len(known):
-        raise CylsfmError("the clip's depth has no known pixel")
-    factor = options.median_depth / float(np.median(known))
-    return factor, f"relative depth: one scale for the clip, median depth {options.median_depth:g}"
+    """One depth scale for the clip of ``scenes`` (see :class:`_ClipStatistics`)."""
+    stats = _ClipStatistics(options)
+    for scene in scenes:
+        stats.add(scene)
+    return stats.factor()
 
 
 def export_stereo_video(
@@ -108,8 +130,10 @@ def export_stereo_video(
 ) -> tuple[Path, str]:
     """Render every frame of ``video`` in stereo into the video ``out`` (H.264 where available).
 
-    ``scene_of(rgb) -> Scene`` gives a frame's scene (the network's depth). Two passes: the depths first
-    (for one scale per clip), then the frames again, rendered. Returns ``(out, the scale's note)``.
+    ``scene_of(rgb) -> Scene`` gives a frame's scene (the network's depth). Two passes over the video: the
+    first predicts every frame's depth for the clip's one scale (keeping only a sample of it), the
+    second decodes and predicts again and renders (so that no clip is held in memory). Returns ``(out,
+    the scale's note)``.
     """
     from ..data.inputs import discover_inputs, read_frames
     from ..data.video import FALLBACK_RATE, VideoWriter
@@ -119,22 +143,23 @@ def export_stereo_video(
     (source,) = discover_inputs([video])
     if source.kind != "video":
         raise CylsfmError(f"{video}: not a video")
-    scenes = []
+    stats = _ClipStatistics(options)
     with progress_bar(desc="depth", unit="frame", enabled=progress) as bar:
         for _, rgb in read_frames(source, fps):
-            scene = scene_of(rgb)  # type: ignore[operator]
-            scenes.append(scene.at_width(options.width) if options.width else scene)
+            stats.add(scene_of(rgb))  # type: ignore[operator]
             bar.update(1)
-    if not scenes:
+    if not stats.samples:
         raise CylsfmError(f"{video}: no frames")
-    factor, note = _clip_factor(scenes, options)
+    factor, note = stats.factor()
+    unit_of = "metres" if options.camera_height is not None else None
     rate = Fraction(fps).limit_denominator(1001) if fps else (source.rate or FALLBACK_RATE)
     writer = VideoWriter(Path(out), rate)
     try:
-        with progress_bar(total=len(scenes), desc="stereo", unit="frame", enabled=progress) as bar:
-            for scene in scenes:
-                unit = "metres" if options.camera_height is not None else scene.unit
-                pair, _ = _render(scene.scaled(factor, unit, note), options)
+        with progress_bar(total=len(stats.samples), desc="stereo", unit="frame", enabled=progress) as bar:
+            for _, rgb in read_frames(source, fps):
+                scene = scene_of(rgb)  # type: ignore[operator]
+                scene = scene.at_width(options.width) if options.width else scene
+                pair, _ = _render(scene.scaled(factor, unit_of or scene.unit, note), options)
                 writer.write(pair)
                 bar.update(1)
         writer.close()

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..atomic import atomic_write_bytes, atomic_write_text
 from ..data.io import read_tum
+from ..errors import InputError
 from .colorize import colorize_depth
 from .mesh import MAX_RATIO, build_mesh
 from .scene import Scene
@@ -42,6 +43,8 @@ def _b64(array: np.ndarray) -> str:
 def _trajectory(path: str | os.PathLike[str]) -> np.ndarray:
     """Positions ``float32 [N,3]`` of a TUM trajectory, in the frame of its first pose."""
     _, poses = read_tum(path)
+    if not len(poses):
+        raise InputError(f"{path}: the trajectory has no poses")
     first = np.linalg.inv(poses[0])
     return np.stack([(first @ p)[:3, 3] for p in poses]).astype(np.float32)
 

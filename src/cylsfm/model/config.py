@@ -93,6 +93,9 @@ class ModelConfig:
     # align_distill_start on (when the depth is worth aligning with). 0: off.
     align_distill: float = 0.0
     align_distill_start: int = 0
+    align_distill_terms: str = (
+        "pose"  # "pose": translation and rotation; "direction": the translation's direction
+    )
 
     def __post_init__(self) -> None:
         if self.pose_head not in ("mean", "equivariant", "auto"):
@@ -106,6 +109,10 @@ class ModelConfig:
             )
         if self.prior_distill < 0:
             raise ConfigError(f"model.prior_distill must be >= 0, got {self.prior_distill}")
+        if self.align_distill_terms not in ("pose", "direction"):
+            raise ConfigError(
+                f"model.align_distill_terms must be 'pose' or 'direction', got {self.align_distill_terms!r}"
+            )
         if self.align_distill < 0 or self.align_distill_start < 0:
             raise ConfigError("model.align_distill and model.align_distill_start must be >= 0")
 

@@ -254,7 +254,8 @@ class Trainer:
             pose_net.scaffold_gap = None  # the graph is the loss's alone
         weight = self.cfg.model.align_distill
         if weight > 0 and self.step >= self.cfg.model.align_distill_start:
-            extra["align"] = weight * alignment_distillation(tgt32, src.float(), disps[0], poses, cam)
+            parts = self.cfg.model.align_distill_terms
+            extra["align"] = weight * alignment_distillation(tgt32, src.float(), disps[0], poses, cam, parts)
         if self.cfg.data.still > 0:  # samples of a standing camera: sources identical to the target
             still = (src == tgt[:, None]).flatten(1).all(1)
             extra["still"] = loss_cfg.still_weight * standing_still_loss(pose_vec.float(), still)

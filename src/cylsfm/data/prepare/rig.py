@@ -19,7 +19,8 @@ A rig is described by a JSON file (paths relative to it, never outside its folde
 A view's ``camera`` is a camera.json file or its contents (pinhole); ``yaw`` turns it right, ``pitch`` up,
 ``roll`` about its axis (degrees; :func:`~cylsfm.data.stitch.view_rotation`). The rig's frame, the
 panorama's, is the frame of a view with yaw, pitch and roll 0. Frames are matched by file stem across the
-views; a frame missing in one view is an error. Depth files are ``.npy`` (metres) or images read unchanged
+views (their names must sort in time order, e.g. zero-padded numbers: the poses file's lines are matched
+to them in that order); a frame missing in one view is an error. Depth files are ``.npy`` (metres) or images read unchanged
 (16-bit PNG; the first channel) times ``depth_scale``, along each view's optical axis.
 """
 
@@ -181,11 +182,34 @@ def _inside(path: Path, root: Path, what: str) -> Path:
 def _files(folder: Path, suffixes: Sequence[str]) -> dict[str, Path]:
     if not folder.is_dir():
         raise CylsfmError(f"{folder}: folder not found")
-    return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in suffixes}
+    out = {}
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") or p.suffix.lower() not in suffixes:
+            continue
+        out[p.stem] = _inside(p, folder, "file") if p.is_symlink() else p
+    return out
 
 
-def _view(entry: Any, root: Path, i: int) -> tuple[View, dict[str, Path], dict[str, Path] | None]:
-    where = f"{root / 'rig.json'}: view {i}"
+def _number(
+    spec: dict[str, Any], key: str, default: float | None, where: str, positive: bool = False
+) -> float | None:
+    """``spec[key]`` as a finite number (``default`` when absent), else a :class:`CylsfmError`."""
+    value = spec.get(key, default)
+    if value is None:
+        return None
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise CylsfmError(f"{where}: '{key}' must be a number, got {value!r}") from None
+    if not math.isfinite(number) or (positive and number <= 0):
+        raise CylsfmError(
+            f"{where}: '{key}' must be a {'positive' if positive else 'finite'} number, got {value!r}"
+        )
+    return number
+
+
+def _view(entry: Any, root: Path, i: int, rig: Path) -> tuple[View, dict[str, Path], dict[str, Path] | None]:
+    where = f"{rig}: view {i}"
     if not isinstance(entry, dict) or "images" not in entry or "camera" not in entry:
         raise CylsfmError(f"{where} needs 'images' and 'camera'")
     name = str(entry.get("name", i))
@@ -194,7 +218,7 @@ def _view(entry: Any, root: Path, i: int) -> tuple[View, dict[str, Path], dict[s
         camera: Camera = Camera.from_dict(cam_entry, source=f"{where} camera")
     else:
         camera = load_camera(_inside(root / str(cam_entry), root, "camera file"))
-    angles = [float(entry.get(k, 0.0)) for k in ("yaw", "pitch", "roll")]
+    angles = [float(_number(entry, k, 0.0, where)) for k in ("yaw", "pitch", "roll")]  # type: ignore[arg-type]
     view = View(name, camera, view_rotation(*angles))
     images = _files(_inside(root / str(entry["images"]), root, "image folder"), IMAGE_SUFFIXES)
     depths = None
@@ -218,7 +242,7 @@ def load_rig(path: str | os.PathLike[str]) -> tuple[list[View], list[RigFrame], 
         raise CylsfmError(f"{path}: not a JSON rig file ({exc})") from None
     if not isinstance(spec, dict) or not isinstance(spec.get("views"), list) or not spec["views"]:
         raise CylsfmError(f"{path}: a rig file needs a non-empty list 'views'")
-    parsed = [_view(e, root, i) for i, e in enumerate(spec["views"])]
+    parsed = [_view(e, root, i, path) for i, e in enumerate(spec["views"])]
     views = [v for v, _, _ in parsed]
     names = sorted(set().union(*(imgs.keys() for _, imgs, _ in parsed)))
     frames = []
@@ -235,12 +259,15 @@ def load_rig(path: str | os.PathLike[str]) -> tuple[list[View], list[RigFrame], 
             )  # type: ignore[index]
         )
     _attach_poses(spec, root, path, frames)
-    depth = {"depth_scale": float(spec.get("depth_scale", 1.0)), "depth_invalid": spec.get("depth_invalid")}
+    depth = {
+        "depth_scale": _number(spec, "depth_scale", 1.0, str(path), positive=True),
+        "depth_invalid": _number(spec, "depth_invalid", None, str(path)),
+    }
     return views, frames, depth
 
 
 def _attach_poses(spec: dict[str, Any], root: Path, path: Path, frames: list[RigFrame]) -> None:
-    fps = float(spec.get("fps", 1.0))
+    fps = float(_number(spec, "fps", 1.0, str(path), positive=True))  # type: ignore[arg-type]
     for i, f in enumerate(frames):
         f.time = i / fps
     if spec.get("poses") is None:
@@ -274,7 +301,14 @@ def prepare_views(
     seq_name = name or Path(rig).resolve().parent.name
     settings = {
         "rig": str(Path(rig).resolve()),
-        "views": fingerprint([v.name for v in views]),
+        # what decides the output: each view's camera and direction, the depth's unit, the poses
+        "views": fingerprint(
+            [[v.name, v.camera.to_dict(), np.round(v.rotation, 9).tolist()] for v in views]
+            + [
+                depth,
+                [[f.name, f.time, None if f.pose is None else np.round(f.pose, 9).tolist()] for f in frames],
+            ]
+        ),
         **options.settings(),
     }
     seq = PreparedSequence(Path(out) / seq_name, camera, settings, overwrite)

@@ -242,6 +242,8 @@ def prepare_synthia(
         for side in options.sides:
             views, frames = _side_frames(folder, side)
             frames = [f for f in frames if f.name not in options.exclude]
+            if len(frames) < 2:
+                raise CylsfmError(f"{folder} ({side}): fewer than two frames left to prepare")
             convention, errors = options.convention, None
             if convention == "auto":
                 convention, errors = _choose_convention(views, frames)

@@ -107,6 +107,11 @@ class Stitcher:
         self.colour_maps = [
             Resampler(_padded(v.camera), dst, wrap=False, rotation=v.rotation) for v in self.views
         ]
+        # each padded view's feathering weight, in the view's own pixel coordinates
+        self.weights = [
+            _feather(v.camera, _padded(v.camera).pixel_grid(1, dtype=torch.float64)[0] - 1)
+            for v in self.views
+        ]
         rays = dst.rays(dst.pixel_grid(1, dtype=torch.float64))[0]  # [3,H,W] unit-cylinder rays
         best = torch.zeros(dst.height, dst.width)
         self.choice = torch.full((dst.height, dst.width), -1, dtype=torch.int64)
@@ -126,11 +131,11 @@ class Stitcher:
         self._check(images, "image")
         num = torch.zeros(3, self.dst.height, self.dst.width)
         den = torch.zeros(self.dst.height, self.dst.width)
-        for v, image, resample in zip(self.views, images, self.colour_maps, strict=True):
+        for v, image, resample, weight in zip(
+            self.views, images, self.colour_maps, self.weights, strict=True
+        ):
             if image.ndim != 3 or image.shape[2] != 3:
                 raise InputError(f"view {v.name}: an image must be [H,W,3], got {image.shape}")
-            grid = _padded(v.camera).pixel_grid(1, dtype=torch.float64)[0] - 1  # the view's own coordinates
-            weight = _feather(v.camera, grid)
             rgb = torch.from_numpy(np.array(image, dtype=np.float32)).permute(2, 0, 1)[None]
             rgb = F.pad(rgb, (1, 1, 1, 1), mode="replicate")[0]
             src = torch.cat([rgb * weight, weight[None]])[None]

@@ -49,7 +49,13 @@ def _source_points(scene: Scene, sub: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def render_eye(
-    scene: Scene, out: Camera, ipd: float, eye: str, sub: int = 2, fill: bool = True
+    scene: Scene,
+    out: Camera,
+    ipd: float,
+    eye: str,
+    sub: int = 2,
+    fill: bool = True,
+    points: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One eye's ODS panorama of ``scene`` in camera ``out`` (full cylindrical or equirectangular).
 
@@ -58,6 +64,7 @@ def render_eye(
         eye: ``"left"`` or ``"right"``.
         sub: sub-pixel samples per source pixel and axis.
         fill: fill disocclusions from the background.
+        points: the scene's sub-sampled points and colours when already computed (both eyes share them).
 
     Returns:
         ``(image uint8 [H,W,3], depth float32 [H,W])`` (depth: horizontal distance along the eye's ray;
@@ -69,7 +76,7 @@ def render_eye(
         raise InputError("ODS output must be a full 360-degree cylindrical or equirectangular camera")
     r = ipd / 2
     s = 1.0 if eye == "left" else -1.0
-    pts, cols = _source_points(scene, sub)
+    pts, cols = points if points is not None else _source_points(scene, sub)
     x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
     rho = np.hypot(x, z)
     seen = rho > r * 1.0001  # inside the viewing circle nothing is seen by a tangent ray
@@ -146,7 +153,9 @@ def ods_pair(scene: Scene, out: Camera, ipd: float, sub: int = 2) -> tuple[np.nd
     """``(left, right)`` ODS eye images ``uint8 [H,W,3]`` of ``scene`` in camera ``out``."""
     if not (math.isfinite(ipd) and ipd > 0):
         raise InputError(f"ipd must be a positive distance, got {ipd}")
-    return render_eye(scene, out, ipd, "left", sub)[0], render_eye(scene, out, ipd, "right", sub)[0]
+    points = _source_points(scene, sub)
+    left = render_eye(scene, out, ipd, "left", sub, points=points)[0]
+    return left, render_eye(scene, out, ipd, "right", sub, points=points)[0]
 
 
 def stereo_layout(left: np.ndarray, right: np.ndarray, layout: str) -> np.ndarray:

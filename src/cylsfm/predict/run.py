@@ -189,7 +189,7 @@ def _run_batch(
     depth = predictor.depth(images, cam)[:, 0].float().cpu().numpy()
     win = predictor.window(cam)
     shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
-    full = _full_resolution(depth, plan, cam, win) if outputs.full else None
+    full = _full_resolution(depth, plan, cam, predictor.fov) if outputs.full else None
     for i, (stem, rgb) in enumerate(batch):
         save_depth(dest / f"{stem}.npy", depth[i])
         if outputs.png:
@@ -208,16 +208,9 @@ class _Outputs:
     full: bool
 
 
-def _full_resolution(
-    depth: np.ndarray, plan: Plan, cam: Camera, window: tuple[int, int] | None
-) -> np.ndarray:
-    """The batch's depth ``[B,h,w]`` in the input's own camera ``[B,H,W]`` (0 where the model does not see)."""
-    d = torch.from_numpy(depth)[:, None]
-    net = cam if window is None else cam.crop(predictor_fov_deg(cam, window))  # type: ignore[attr-defined]
+def _full_resolution(depth: np.ndarray, plan: Plan, cam: Camera, fov: float) -> np.ndarray:
+    """The batch's depth ``[B,h,w]`` in the input's own camera ``[B,H,W]`` (0 where the model does not see);
+    ``cam`` is the network's input camera, of which a model trained on crops sees the centred ``fov``."""
+    net = cam if fov >= 360 else cam.crop(fov)  # type: ignore[attr-defined]
     assert isinstance(net, CylindricalCamera)
-    return depth_to_camera(d, net, plan.camera)[:, 0].numpy()
-
-
-def predictor_fov_deg(cam: Camera, window: tuple[int, int]) -> float:
-    """The field of view (degrees) of a crop window of a full cylinder."""
-    return math.degrees((window[1] - window[0]) / float(cam.fx))
+    return depth_to_camera(torch.from_numpy(depth)[:, None], net, plan.camera)[:, 0].numpy()

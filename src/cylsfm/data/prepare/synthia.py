@@ -17,6 +17,7 @@ predict each other, checked on frame pairs across the sequence).
 
 from __future__ import annotations
 
+import json
 import os
 import re
 from dataclasses import dataclass, field
@@ -31,7 +32,7 @@ from ...geometry import CylindricalCamera, PinholeCamera, inverse_warp
 from ..io import image_size, load_image, read_text
 from ..stitch import Stitcher, View, view_rotation
 from .rig import RigFrame, drop_static, read_view_depth, write_rig
-from .sequence import PreparedSequence
+from .sequence import PREPARE_FILE, PreparedSequence
 
 __all__ = ["CONVENTIONS", "SynthiaOptions", "pose_convention", "prepare_synthia"]
 
@@ -191,6 +192,27 @@ def _choose_convention(
     return best, errors
 
 
+def _auto_convention(
+    path: Path, folder: Path, side: str, views: list[View], frames: list[RigFrame], overwrite: bool
+) -> tuple[str, dict[str, float] | None]:
+    """The convention a finished preparation into ``path`` chose, else :func:`_choose_convention`'s."""
+    convention, errors = ("auto", None) if overwrite else _chosen_before(path, folder, side)
+    return (convention, errors) if convention != "auto" else _choose_convention(views, frames)
+
+
+def _chosen_before(path: Path, folder: Path, side: str) -> tuple[str, dict[str, float] | None]:
+    """The convention a finished preparation of ``folder``'s ``side`` into ``path`` chose (``"auto"``: none)."""
+    try:
+        record = json.loads((path / PREPARE_FILE).read_text(encoding="utf-8"))
+        settings = record["settings"]
+        same = settings["source"] == str(folder.resolve()) and settings["side"] == side
+        if record.get("finished") and same and record.get("convention") in _all_conventions():
+            return record["convention"], record.get("convention_errors")
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return "auto", None
+
+
 def _tensor(image: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
 
@@ -246,7 +268,8 @@ def prepare_synthia(
                 raise CylsfmError(f"{folder} ({side}): fewer than two frames left to prepare")
             convention, errors = options.convention, None
             if convention == "auto":
-                convention, errors = _choose_convention(views, frames)
+                target = Path(out) / f"{seq}-{season}-{side}"
+                convention, errors = _auto_convention(target, folder, side, views, frames, overwrite)
             for f in frames:
                 f.pose = pose_convention(f.pose, convention)  # type: ignore[arg-type]
             frames, dropped = drop_static(frames, options.static_motion, options.static_turn_deg)

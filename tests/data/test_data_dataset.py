@@ -18,6 +18,7 @@ from cylsfm.data import (
     StaticFilter,
     camera_of,
 )
+from cylsfm.data.augment import augment_geometry
 from cylsfm.data.synth.room import make_pose, render_room
 from cylsfm.errors import InputError
 from cylsfm.geometry import relative_pose, yaw_matrix
@@ -309,12 +310,34 @@ def test_unaugmented_ground_truth_is_consistent(room_root):
 def test_mirror_keeps_geometry_consistent(room_root):
     plain = SequenceDataset(room_root)[0]
     s = SequenceDataset(room_root, augment=AugmentConfig(mirror_prob=1.0, color_jitter=False))[0]
-    assert torch.equal(s["target"], plain["target"].flip(-1))
-    assert torch.equal(s["depth"], plain["depth"].flip(-1))
-    assert float(s["intrinsics"][0, 1]) == pytest.approx(127 - 64)
+    # a full panorama is mirrored about its principal azimuth: column u -> (2 cx - u) mod W, same camera
+    assert torch.equal(s["target"], torch.roll(plain["target"].flip(-1), 1, dims=-1))
+    assert torch.equal(s["depth"], torch.roll(plain["depth"].flip(-1), 1, dims=-1))
+    assert torch.equal(s["intrinsics"], plain["intrinsics"])
     assert warp_ratio(s) > 3
     # the test can fail: the unmirrored poses do not explain the mirrored images
     assert warp_ratio(s, plain["pose_gt"]) < 2
+
+
+def test_mirror_maps_azimuth_to_its_negative():
+    """A lit column at azimuth theta ends at -theta in the same camera; a crop keeps the flip of columns
+    and moves its principal point instead."""
+    cam = CylindricalCamera.full(16, 4)
+    frames = torch.zeros(3, 4, 16, 3, dtype=torch.uint8)
+    u = 11  # theta = 2 pi (11 - 8) / 16
+    frames[..., u, :] = 255
+    pose = torch.eye(4, dtype=torch.float64).expand(2, 4, 4).clone()
+    pose[:, 0, 3] = 0.3
+    aug = AugmentConfig(mirror_prob=1.0, color_jitter=False)
+    out, cam2, _, _, pose2 = augment_geometry(frames, cam, None, None, pose, aug)
+    assert cam2 == cam
+    lit = out[0, 0, :, 0].nonzero().flatten().tolist()
+    assert lit == [2 * 8 - u]  # theta -> -theta
+    assert float(pose2[0, 0, 3]) == pytest.approx(-0.3)
+    crop = CylindricalCamera(fx=16 / (2 * math.pi), fy=2.0, cx=4.0, cy=1.5, width=8, height=4)
+    out, crop2, _, _, _ = augment_geometry(frames[..., :8, :], crop, None, None, None, aug)
+    assert torch.equal(out, frames[..., :8, :].flip(2))
+    assert float(crop2.cx) == pytest.approx(3.0)
 
 
 def _roll_of(aug, plain):

@@ -36,9 +36,15 @@ class AugmentConfig:
     that view synthesis between them stays consistent; ground truth is transformed with the images.
 
     Attributes:
-        mirror: horizontal flip of all frames with probability ``mirror_prob``. The camera becomes
-            ``cx' = (W-1) - cx``, depth and mask are flipped, and ground-truth relative poses are mirrored
-            ``T' = M T M`` with ``M = diag(-1, 1, 1, 1)``.
+        mirror: horizontal flip of all frames with probability ``mirror_prob``: azimuth ``theta`` becomes
+            ``-theta`` (``x -> -x``). Depth and mask are flipped with the frames, and ground-truth relative
+            poses are mirrored ``T' = M T M`` with ``M = diag(-1, 1, 1, 1)``. For a full panorama whose
+            ``2 cx`` is a whole number (e.g. ``cx = W / 2``) column ``u`` goes to ``(2 cx - u) mod W`` and the
+            camera is unchanged, so that the mirror about the principal azimuth is exact and every sample
+            keeps straight ahead at the same column: a network that reads azimuth from the column (the
+            yaw-equivariant pose head, the visual compass) sees one convention. Otherwise column ``u`` goes
+            to ``W - 1 - u`` and the camera becomes ``cx' = (W - 1) - cx`` (the principal point moves by
+            ``W - 1 - 2 cx`` columns, one for a crop with ``cx = W / 2``).
         mirror_prob: probability of a flip.
         color_jitter: random brightness, contrast, saturation and hue, the same for all frames.
         brightness: factor drawn in ``[1 - b, 1 + b]``.
@@ -164,10 +170,25 @@ def augment_geometry(
         frames = frames.flip(2)
         depth = None if depth is None else depth.flip(-1)
         mask = None if mask is None else mask.flip(-1)
-        camera = replace(camera, cx=(camera.width - 1) - camera.cx)
+        shift = _mirror_shift(camera)
+        if shift is None:
+            camera = replace(camera, cx=(camera.width - 1) - camera.cx)
+        elif shift:  # u -> W - 1 - u -> (2 cx - u) mod W: the same camera
+            frames = roll_columns(frames, shift, axis=2)
+            depth = None if depth is None else roll_columns(depth, shift)
+            mask = None if mask is None else roll_columns(mask, shift)
         if pose_gt is not None:
             pose_gt = _MIRROR @ pose_gt @ _MIRROR
     return frames, camera, depth, mask, pose_gt
+
+
+def _mirror_shift(camera: Camera) -> int | None:
+    """The roll (columns) that turns a flip of ``camera``'s frames into the mirror about its principal
+    azimuth, ``u -> (2 cx - u) mod W``; ``None`` where the columns do not wrap or ``2 cx`` is not whole."""
+    twice = 2.0 * float(camera.cx)
+    if not camera.wraps or abs(twice - round(twice)) > 1e-6:
+        return None
+    return int(round(twice) - camera.width + 1) % int(camera.width)
 
 
 def to_float(frames: Tensor, cfg: AugmentConfig | None) -> Tensor:

@@ -45,6 +45,10 @@ def test_bad_configurations_are_clear_errors(tmp_path):
         apply_overrides(preset("default"), ["loss.ssim_weight"])
     with pytest.raises(ConfigError, match="equivariant"):
         apply_overrides(preset("improved"), ["data.roll=true"])
+    with pytest.raises(ConfigError, match="pose_level"):
+        apply_overrides(preset("default"), ["model.pose_level=8"])
+    with pytest.raises(ConfigError, match="pose_level must be >= 5"):
+        apply_overrides(preset("paper-synthia"), ["model.pose_level=4"])
     with pytest.raises(ConfigError, match="preset"):
         preset("nope")
     with pytest.raises(ConfigError, match="not found"):

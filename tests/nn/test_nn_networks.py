@@ -246,6 +246,40 @@ def test_equivariant_pose_head_rotates_with_a_yaw_roll() -> None:
         torch.testing.assert_close(p0, p1)
 
 
+def test_equivariant_head_at_level_5_rotates_with_rolls_of_32_pixels() -> None:
+    """Read at encoder level 5 (stride 32), the equivariant head turns with every roll by a multiple of 32
+    pixels, where the deepest level's head turns only with multiples of 128."""
+    import math
+
+    from cylsfm.geometry import yaw_matrix
+
+    torch.manual_seed(4)
+    target, sources = torch.rand(1, 3, 64, 256), torch.rand(1, 2, 3, 64, 256)
+    for level, exact in ((5, True), (7, False)):
+        net = PoseExpNet(
+            2, explainability=False, pose_head="equivariant", antisymmetric=True, pose_level=level
+        )
+        net = net.eval()
+        with torch.no_grad():
+            for p in net.parameters():
+                p.mul_(1.7)
+            pose, _ = net(target, sources)
+            assert pose.abs().max() > 1e-5
+            k = 96
+            rolled, _ = net(torch.roll(target, k, -1), torch.roll(sources, k, -1))
+        q = yaw_matrix(torch.tensor(2 * math.pi * k / 256))
+        expected = torch.cat((pose[..., :3] @ q.T, pose[..., 3:] @ q.T), -1)
+        close = torch.allclose(rolled, expected, atol=1e-7 + 1e-4 * float(pose.abs().max()), rtol=1e-4)
+        assert close == exact, level
+
+
+def test_pose_level_is_checked() -> None:
+    with pytest.raises(ValueError, match="pose_level"):
+        PoseExpNet(2, explainability=False, pose_level=0)
+    with pytest.raises(ValueError, match="level 5"):
+        PoseExpNet(2, explainability=True, pose_level=4)
+
+
 def _grads(outputs: list[torch.Tensor], inputs: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
     g = torch.Generator().manual_seed(1)
     loss = sum((o * torch.randn(o.shape, generator=g, dtype=o.dtype)).sum() for o in outputs)
@@ -273,11 +307,15 @@ def test_dispnet_padded_path_equals_layer_by_layer(channels_last: bool, width: i
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.parametrize("explainability", [True, False])
+@pytest.mark.parametrize(("explainability", "level"), [(True, 7), (False, 7), (True, 5), (False, 4)])
 @pytest.mark.parametrize(("width", "height"), [(256, 64), (128, 33)])
-def test_posenet_padded_path_equals_layer_by_layer(explainability: bool, width: int, height: int) -> None:
+def test_posenet_padded_path_equals_layer_by_layer(
+    explainability: bool, level: int, width: int, height: int
+) -> None:
     torch.manual_seed(0)
-    net = PoseExpNet(2, explainability, wrap=True).double().to(memory_format=torch.channels_last)
+    net = PoseExpNet(2, explainability, wrap=True, pose_level=level).double()
+    net = net.to(memory_format=torch.channels_last)
+    assert len(net.encoder) == level
     t = torch.rand(2, 3, height, width, dtype=torch.float64).requires_grad_(True)
     s = torch.rand(2, 2, 3, height, width, dtype=torch.float64)
     feats, masks = net._forward_wrapped(t, s)

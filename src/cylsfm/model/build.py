@@ -27,6 +27,7 @@ def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseExpNet]:
         compass=cfg.model.compass and cfg.wrap,  # the compass reads full panoramas only
         antisymmetric=cfg.model.antisymmetric,
         slot_prior=cfg.model.scaffold,
+        pose_level=cfg.model.pose_level,
     )
     return disp, pose
 

@@ -74,6 +74,9 @@ class ModelConfig:
     # each column by its azimuth on the whole circle) | "auto" (equivariant on full panoramas, mean on crops)
     pose_head: str = "mean"
     compass: bool = False  # add the visual compass's yaw to the pose (used on full panoramas only)
+    # the pose encoder's level (1-7) that the pose head reads: 7 = the deepest (stride 128, 2 columns at
+    # 256 px wide); 5 = stride 32, 8 columns, each turned by its own azimuth by the equivariant head
+    pose_level: int = 7
     # pose from frame pairs, g(t, s) - g(s, t): no bias, no slot prior once trained
     antisymmetric: bool = False
     # A scaffold for the antisymmetric pose network: a learned motion per source slot (the prior that
@@ -112,6 +115,12 @@ class ModelConfig:
         if self.align_distill_terms not in ("pose", "direction"):
             raise ConfigError(
                 f"model.align_distill_terms must be 'pose' or 'direction', got {self.align_distill_terms!r}"
+            )
+        if not 1 <= self.pose_level <= 7:
+            raise ConfigError(f"model.pose_level must be in 1..7, got {self.pose_level}")
+        if self.explainability and self.pose_level < 5:
+            raise ConfigError(
+                "model.explainability reads the pose encoder's level 5: model.pose_level must be >= 5"
             )
         if self.align_distill < 0 or self.align_distill_start < 0:
             raise ConfigError("model.align_distill and model.align_distill_start must be >= 0")

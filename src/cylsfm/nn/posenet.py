@@ -60,6 +60,12 @@ class PoseExpNet(nn.Module):
     the pose from a to b (its inverse to first order), and a source's prediction does not depend on its slot: the network must read the
     motion from the pair. No explainability masks in this mode.
 
+    ``pose_level`` (1-7, default 7) is the encoder level whose features the pose head reads; the deeper
+    levels are not built. At 256 px wide level 7 leaves 2 columns and level 5 (stride 32) 8: the
+    equivariant head then turns 8 columns' predictions by their own azimuths, each column read from a
+    window of 71 px (100 degrees) about it, and is exactly equivariant to rolls by 32 px instead of 128.
+    With explainability masks the decoder reads level 5, so ``pose_level`` must be at least 5.
+
     With ``slot_prior`` (antisymmetric only) the network also carries a learned 6-vector per source slot,
     ``slot_prior [S, 6]`` (times a gain of 10): the motion by slot that the paper's head learns in its
     bias, here a scaffold that gives the depth network parallax from the first step while the pair
@@ -78,6 +84,7 @@ class PoseExpNet(nn.Module):
         compass: add the visual compass's yaw (see above); needs ``wrap``.
         antisymmetric: predict from frame pairs, antisymmetrically (see above).
         slot_prior: carry a learned per-slot motion weighted by ``prior_weight`` (see above).
+        pose_level: the encoder level the pose head reads (see above).
     """
 
     enc_channels = (16, 32, 64, 128, 256, 256, 256)
@@ -93,12 +100,17 @@ class PoseExpNet(nn.Module):
         compass: bool = False,
         antisymmetric: bool = False,
         slot_prior: bool = False,
+        pose_level: int = 7,
     ) -> None:
         super().__init__()
         if antisymmetric and explainability:
             raise ValueError("antisymmetric pose prediction has no explainability masks")
         if slot_prior and not antisymmetric:
             raise ValueError("slot_prior is a scaffold for the antisymmetric pose network only")
+        if not 1 <= pose_level <= len(self.enc_channels):
+            raise ValueError(f"pose_level must be in 1..{len(self.enc_channels)}, got {pose_level}")
+        if explainability and pose_level < 5:
+            raise ValueError("explainability masks read encoder level 5: pose_level must be >= 5")
         if n_sources < 1:
             raise ValueError(f"n_sources must be >= 1, got {n_sources}")
         if compass and not wrap:
@@ -111,14 +123,16 @@ class PoseExpNet(nn.Module):
         self.n_sources = n_sources
         self.explainability = explainability
         self.wrap = wrap
+        self.pose_level = pose_level
 
         per_call = 1 if antisymmetric else n_sources  # sources seen by one pass of the encoder
-        enc_in = (3 * (1 + per_call), *self.enc_channels[:-1])
+        channels, kernels = self.enc_channels[:pose_level], self.enc_kernels[:pose_level]
+        enc_in = (3 * (1 + per_call), *channels[:-1])
         self.encoder = nn.ModuleList(
             nn.Sequential(WrapConv2d(cin, cout, k, stride=2, wrap=wrap), nn.ReLU(inplace=True))
-            for cin, cout, k in zip(enc_in, self.enc_channels, self.enc_kernels, strict=True)
+            for cin, cout, k in zip(enc_in, channels, kernels, strict=True)
         )
-        self.pose_pred = WrapConv2d(self.enc_channels[-1], 6 * per_call, 1, wrap=wrap)
+        self.pose_pred = WrapConv2d(channels[-1], 6 * per_call, 1, wrap=wrap)
         self.slot_prior = nn.Parameter(torch.zeros(n_sources, 6)) if slot_prior else None
         self.prior_weight = 0.0
         self.scaffold_gap: torch.Tensor | None = None
@@ -233,12 +247,9 @@ class PoseExpNet(nn.Module):
         up_pad = max(max(u[0].wrap_left, u[0].wrap_right) for u in self.upconvs) if self.upconvs else 0
         padded: list[tuple[torch.Tensor, int]] = []
         for j, stage in enumerate(self.encoder):
-            if j + 1 < len(self.encoder):
-                pad = self.encoder[j + 1][0].pad
-                if j == 4 and decoder:
-                    pad = max(pad, up_pad)
-            else:
-                pad = self.pose_pred.pad
+            pad = self.encoder[j + 1][0].pad if j + 1 < len(self.encoder) else self.pose_pred.pad
+            if j == 4 and decoder:
+                pad = max(pad, up_pad)
             y = stage[0].forward_padded(_narrow(xp, padded[-1][1] - stage[0].pad) if padded else xp)
             xp = relu_pad(y, pad)
             padded.append((xp, pad))

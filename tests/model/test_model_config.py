@@ -48,7 +48,7 @@ def test_bad_configurations_are_clear_errors(tmp_path):
     with pytest.raises(ConfigError, match="pose_level"):
         apply_overrides(preset("default"), ["model.pose_level=8"])
     with pytest.raises(ConfigError, match="pose_level must be >= 5"):
-        apply_overrides(preset("paper-synthia"), ["model.pose_level=4"])
+        apply_overrides(preset("improved"), ["model.explainability=true", "model.pose_level=4"])
     with pytest.raises(ConfigError, match="preset"):
         preset("nope")
     with pytest.raises(ConfigError, match="not found"):

@@ -49,6 +49,8 @@ def test_bad_configurations_are_clear_errors(tmp_path):
         apply_overrides(preset("default"), ["model.pose_level=8"])
     with pytest.raises(ConfigError, match="pose_level must be >= 5"):
         apply_overrides(preset("improved"), ["model.explainability=true", "model.pose_level=4"])
+    with pytest.raises(ConfigError, match="pose_antipodal"):
+        apply_overrides(preset("default"), ["model.pose_antipodal=true", "data.fov=180"])
     with pytest.raises(ConfigError, match="preset"):
         preset("nope")
     with pytest.raises(ConfigError, match="not found"):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -271,6 +273,40 @@ def test_equivariant_head_at_level_5_rotates_with_rolls_of_32_pixels() -> None:
         expected = torch.cat((pose[..., :3] @ q.T, pose[..., 3:] @ q.T), -1)
         close = torch.allclose(rolled, expected, atol=1e-7 + 1e-4 * float(pose.abs().max()), rtol=1e-4)
         assert close == exact, level
+
+
+def test_antipodal_input_reads_each_azimuth_with_its_opposite() -> None:
+    """The first convolution sees a frame and its half-turn copy: the padded path equals the layers, the
+    head stays equivariant to rolls (here by a quarter turn at level 6), and a change at one azimuth reaches the first feature map both there
+    and half a turn away."""
+    torch.manual_seed(5)
+    net = PoseExpNet(
+        2, explainability=False, pose_head="equivariant", antisymmetric=True, antipodal=True, pose_level=6
+    )
+    net = net.double().eval()
+    t = torch.rand(1, 3, 64, 256, dtype=torch.float64)
+    s = torch.rand(1, 2, 3, 64, 256, dtype=torch.float64)
+    from cylsfm.geometry import yaw_matrix
+    from cylsfm.nn.posenet import _with_antipodes
+
+    x, y = _with_antipodes(t), _with_antipodes(s)[:, :1]  # the pair network reads one source at a time
+    assert x.shape == (1, 6, 64, 256)
+    torch.testing.assert_close(net._forward_wrapped(x, y)[0][-1], net._forward_modules(x, y)[0][-1])
+    t2 = t.clone()
+    t2[..., 10] += 0.5  # one column of the target
+    with torch.no_grad():
+        f1 = net._forward_wrapped(x, y)[0][0]
+        f2 = net._forward_wrapped(_with_antipodes(t2), y)[0][0]
+        pose, _ = net(t, s)
+        rolled, _ = net(t.roll(64, -1), s.roll(64, -1))
+    q = yaw_matrix(math.pi / 2, dtype=torch.float64)
+    torch.testing.assert_close(rolled, torch.cat((pose[..., :3] @ q.T, pose[..., 3:] @ q.T), -1))
+    changed = (f1 - f2).abs().amax(dim=(0, 1, 2)).nonzero().flatten().tolist()
+    assert any(c <= 8 for c in changed) and any(
+        64 <= c <= 72 for c in changed
+    )  # columns 10 and 138, stride 2
+    with pytest.raises(ValueError, match="antipodal"):
+        PoseExpNet(2, explainability=False, wrap=False, antipodal=True)
 
 
 def test_pose_level_is_checked() -> None:

@@ -28,6 +28,7 @@ def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseExpNet]:
         antisymmetric=cfg.model.antisymmetric,
         slot_prior=cfg.model.scaffold,
         pose_level=cfg.model.pose_level,
+        antipodal=cfg.model.pose_antipodal,
     )
     return disp, pose
 

@@ -77,6 +77,9 @@ class ModelConfig:
     # the pose encoder's level (1-7) that the pose head reads: 7 = the deepest (stride 128, 2 columns at
     # 256 px wide); 5 = stride 32, 8 columns, each turned by its own azimuth by the equivariant head
     pose_level: int = 7
+    # each frame read together with its copy turned by half a turn (full panoramas only): a yaw and a
+    # sideways translation move opposite azimuths the same way and opposite ways
+    pose_antipodal: bool = False
     # pose from frame pairs, g(t, s) - g(s, t): no bias, no slot prior once trained
     antisymmetric: bool = False
     # A scaffold for the antisymmetric pose network: a learned motion per source slot (the prior that
@@ -210,6 +213,8 @@ class TrainConfig:
                 "data.roll (random yaw rolls) needs model.pose_head=equivariant: the paper's averaged pose "
                 "head is invariant to rolls and cannot learn ego-motion from rolled samples"
             )
+        if self.model.pose_antipodal and (self.data.fov < 360 or not self.model.wrap):
+            raise ConfigError("model.pose_antipodal needs full 360-degree panoramas with wrap-around")
         if self.data.roll and self.data.fov < 360:
             raise ConfigError("data.roll needs full 360-degree panoramas (data.fov = 360)")
         if self.model.antisymmetric and self.model.explainability:

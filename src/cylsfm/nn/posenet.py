@@ -66,6 +66,11 @@ class PoseExpNet(nn.Module):
     window of 71 px (100 degrees) about it, and is exactly equivariant to rolls by 32 px instead of 128.
     With explainability masks the decoder reads level 5, so ``pose_level`` must be at least 5.
 
+    With ``antipodal`` (full panoramas only) every frame is given to the encoder together with its copy
+    turned by half a turn (6 channels a frame), so that the first convolution sees each azimuth and its
+    opposite at once: there a yaw moves both the same way and a sideways translation opposite ways,
+    which the deepest layers otherwise have to tell apart from features 180 degrees apart.
+
     With ``slot_prior`` (antisymmetric only) the network also carries a learned 6-vector per source slot,
     ``slot_prior [S, 6]`` (times a gain of 10): the motion by slot that the paper's head learns in its
     bias, here a scaffold that gives the depth network parallax from the first step while the pair
@@ -85,6 +90,7 @@ class PoseExpNet(nn.Module):
         antisymmetric: predict from frame pairs, antisymmetrically (see above).
         slot_prior: carry a learned per-slot motion weighted by ``prior_weight`` (see above).
         pose_level: the encoder level the pose head reads (see above).
+        antipodal: frames read with their half-turn copies (see above); needs ``wrap``.
     """
 
     enc_channels = (16, 32, 64, 128, 256, 256, 256)
@@ -101,6 +107,7 @@ class PoseExpNet(nn.Module):
         antisymmetric: bool = False,
         slot_prior: bool = False,
         pose_level: int = 7,
+        antipodal: bool = False,
     ) -> None:
         super().__init__()
         if antisymmetric and explainability:
@@ -113,6 +120,8 @@ class PoseExpNet(nn.Module):
             raise ValueError("explainability masks read encoder level 5: pose_level must be >= 5")
         if n_sources < 1:
             raise ValueError(f"n_sources must be >= 1, got {n_sources}")
+        if antipodal and not wrap:
+            raise ValueError("antipodal input needs full 360-degree panoramas (wrap=True)")
         if compass and not wrap:
             raise ValueError("the visual compass needs full 360-degree panoramas (wrap=True)")
         self.compass = compass
@@ -124,10 +133,11 @@ class PoseExpNet(nn.Module):
         self.explainability = explainability
         self.wrap = wrap
         self.pose_level = pose_level
+        self.antipodal = antipodal
 
         per_call = 1 if antisymmetric else n_sources  # sources seen by one pass of the encoder
         channels, kernels = self.enc_channels[:pose_level], self.enc_kernels[:pose_level]
-        enc_in = (3 * (1 + per_call), *channels[:-1])
+        enc_in = (3 * (2 if antipodal else 1) * (1 + per_call), *channels[:-1])
         self.encoder = nn.ModuleList(
             nn.Sequential(WrapConv2d(cin, cout, k, stride=2, wrap=wrap), nn.ReLU(inplace=True))
             for cin, cout, k in zip(enc_in, channels, kernels, strict=True)
@@ -180,9 +190,12 @@ class PoseExpNet(nn.Module):
         check_input_size(target.shape[-1], target.shape[-2], self.wrap)
         b, s = target.shape[0], self.n_sources
         check_shape(sources, ",".join(str(n) for n in (b, s, 3, *target.shape[-2:])), "sources")
+        tgt, srcs = (
+            (_with_antipodes(target), _with_antipodes(sources)) if self.antipodal else (target, sources)
+        )
         if self.antisymmetric:
-            first = target[:, None].expand_as(sources).flatten(0, 1)  # [B*S,3,H,W]
-            second = sources.flatten(0, 1)
+            first = tgt[:, None].expand_as(srcs).flatten(0, 1)  # [B*S,C,H,W]
+            second = srcs.flatten(0, 1)
             pairs, _ = self._predict(
                 torch.cat((first, second)), torch.cat((second, first))[:, None], b * s * 2, 1
             )
@@ -194,7 +207,7 @@ class PoseExpNet(nn.Module):
                 pose = (1.0 - w) * pose + w * prior
             masks = None
         else:
-            pose, masks = self._predict(target, sources, b, s)
+            pose, masks = self._predict(tgt, srcs, b, s)
         if self.compass:
             pose = pose + _compass_rotation(target, sources).to(pose.dtype)
         return pose, masks
@@ -282,6 +295,11 @@ def _compass_rotation(target: torch.Tensor, sources: torch.Tensor) -> torch.Tens
         yaw = compass_yaw(tgt.float(), sources.flatten(0, 1).float()).view(b, s, 1)
     zeros = torch.zeros_like(yaw)
     return torch.cat((zeros, zeros, zeros, zeros, yaw, zeros), -1)
+
+
+def _with_antipodes(x: torch.Tensor) -> torch.Tensor:
+    """Frames ``[..., 3, H, W]`` with their half-turn copies appended along channels: ``[..., 6, H, W]``."""
+    return torch.cat((x, x.roll(x.shape[-1] // 2, -1)), -3)
 
 
 def _narrow(xp: torch.Tensor, extra: int) -> torch.Tensor:

@@ -4,8 +4,8 @@
 
 On the benchmark's test rides (experiments/out/data, split test) the network's consecutive steps are
 chained and scored (snippet ATE, 5 frames, as `cylsfm evaluate pose`), then again with, for every step,
-the true length (rescaled to the network's median step), the true translation direction, the true rotation,
-or both direction and rotation; with every step's length set to the ride's median (constant length); with
+the true length (rescaled to the network's median step), the true translation direction (or only its
+azimuth or elevation), the true rotation, or both direction and rotation; with every step's length set to the ride's median (constant length); with
 the steps' translations smoothed over time (Gaussian, sigma in steps; rotations kept); and with
 translations fused with the network's own two-frame steps (least squares over the ride, weight w).
 Figures are means over the snippets and ratios to constant velocity.
@@ -53,6 +53,36 @@ def _mixed(net: np.ndarray, true: np.ndarray, part: str) -> np.ndarray:
     return np.stack(out)
 
 
+def _azel(t: np.ndarray) -> tuple[float, float]:
+    """Azimuth ``atan2(x, z)`` and elevation ``atan2(y, hypot(x, z))`` of a translation, radians."""
+    return float(np.arctan2(t[0], t[2])), float(np.arctan2(t[1], np.hypot(t[0], t[2])))
+
+
+def _true_angle(net: np.ndarray, true: np.ndarray, which: int) -> np.ndarray:
+    """``net``'s steps with the translation's azimuth (``which=0``) or elevation (1) of ``true``."""
+    out = []
+    for a, g in zip(net, true, strict=True):
+        ta = _translation(a)
+        ang, ang_true = list(_azel(ta)), _azel(_translation(g))
+        ang[which] = ang_true[which]
+        az, el = ang
+        v = np.linalg.norm(ta) * np.array([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
+        out.append(_with(a, invert(a)[:3, :3], v))
+    return np.stack(out)
+
+
+def _direction_errors(net: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """``[n, 3]`` per step of at least 0.3 m: azimuth error, elevation error, yaw error (degrees)."""
+    rows = []
+    for a, g in zip(net, true, strict=True):
+        if np.linalg.norm(_translation(g)) < 0.3:
+            continue
+        (az_a, el_a), (az_g, el_g) = _azel(_translation(a)), _azel(_translation(g))
+        yaw = np.arctan2(a[0, 2], a[0, 0]) - np.arctan2(g[0, 2], g[0, 0])
+        rows.append(np.degrees([az_a - az_g, el_a - el_g, yaw]))
+    return np.array(rows).reshape(-1, 3)
+
+
 def _constant_length(net: np.ndarray) -> np.ndarray:
     med = np.median([np.linalg.norm(_translation(s)) for s in net])
     return np.stack(
@@ -94,6 +124,7 @@ def main() -> None:
     predictor = Predictor.from_checkpoint(args.checkpoint, "cpu")
     test = {name for name, _ in read_split(split_path(args.data, "test"), args.data)}
     scores: dict[str, list[float]] = {}
+    errors: list[np.ndarray] = []
     for seq in scan_dataset(args.data):
         if seq.path.name not in test:
             continue
@@ -108,6 +139,9 @@ def main() -> None:
         variants = {"network": net, "constant length": _constant_length(net)}
         for part in ("length", "direction", "rotation", "direction+rotation"):
             variants[f"true {part}"] = _mixed(net, true, part)
+        variants["true azimuth of the translation"] = _true_angle(net, true, 0)
+        variants["true elevation of the translation"] = _true_angle(net, true, 1)
+        errors.append(_direction_errors(net, true))
         for sigma in (1.0, 1.5, 2.0):
             variants[f"smoothed, sigma {sigma:g}"] = _smoothed(net, sigma)
         for name, val in [
@@ -121,6 +155,13 @@ def main() -> None:
             scores.setdefault(f"fused with 2-frame steps, w {w:g}", []).extend(
                 snippet_ates(gt, _fused(net, two, w))["model"]
             )
+    err = np.concatenate(errors)
+    az, el, yaw = err.T
+    print(
+        f"per step (>= 0.3 m, {len(err)}): azimuth error mean {az.mean():+.2f} sd {az.std():.2f} deg, "
+        f"elevation error mean {el.mean():+.2f} sd {el.std():.2f} deg; "
+        f"correlation of the azimuth and yaw errors {np.corrcoef(az, yaw)[0, 1]:+.2f}\n"
+    )
     cv = float(np.mean(scores["constant velocity"]))
     print("| | snippet ATE | / constant velocity |\n|---|---|---|")
     for name, val in scores.items():

@@ -310,25 +310,31 @@ def test_unaugmented_ground_truth_is_consistent(room_root):
 def test_mirror_keeps_geometry_consistent(room_root):
     plain = SequenceDataset(room_root)[0]
     s = SequenceDataset(room_root, augment=AugmentConfig(mirror_prob=1.0, color_jitter=False))[0]
-    # a full panorama is mirrored about its principal azimuth: column u -> (2 cx - u) mod W, same camera
-    assert torch.equal(s["target"], torch.roll(plain["target"].flip(-1), 1, dims=-1))
-    assert torch.equal(s["depth"], torch.roll(plain["depth"].flip(-1), 1, dims=-1))
-    assert torch.equal(s["intrinsics"], plain["intrinsics"])
+    assert torch.equal(s["target"], plain["target"].flip(-1))
+    assert torch.equal(s["depth"], plain["depth"].flip(-1))
+    assert float(s["intrinsics"][0, 1]) == pytest.approx(127 - 64)
     assert warp_ratio(s) > 3
+    # mirror_exact: about the principal azimuth, column u -> (2 cx - u) mod W, the same camera
+    aug = AugmentConfig(mirror_prob=1.0, mirror_exact=True, color_jitter=False)
+    e = SequenceDataset(room_root, augment=aug)[0]
+    assert torch.equal(e["target"], torch.roll(plain["target"].flip(-1), 1, dims=-1))
+    assert torch.equal(e["depth"], torch.roll(plain["depth"].flip(-1), 1, dims=-1))
+    assert torch.equal(e["intrinsics"], plain["intrinsics"])
+    assert warp_ratio(e) > 3
     # the test can fail: the unmirrored poses do not explain the mirrored images
     assert warp_ratio(s, plain["pose_gt"]) < 2
 
 
 def test_mirror_maps_azimuth_to_its_negative():
-    """A lit column at azimuth theta ends at -theta in the same camera; a crop keeps the flip of columns
-    and moves its principal point instead."""
+    """With mirror_exact a lit column at azimuth theta ends at -theta in the same camera; a crop keeps the
+    flip of columns and moves its principal point instead."""
     cam = CylindricalCamera.full(16, 4)
     frames = torch.zeros(3, 4, 16, 3, dtype=torch.uint8)
     u = 11  # theta = 2 pi (11 - 8) / 16
     frames[..., u, :] = 255
     pose = torch.eye(4, dtype=torch.float64).expand(2, 4, 4).clone()
     pose[:, 0, 3] = 0.3
-    aug = AugmentConfig(mirror_prob=1.0, color_jitter=False)
+    aug = AugmentConfig(mirror_prob=1.0, mirror_exact=True, color_jitter=False)
     out, cam2, _, _, pose2 = augment_geometry(frames, cam, None, None, pose, aug)
     assert cam2 == cam
     lit = out[0, 0, :, 0].nonzero().flatten().tolist()

@@ -84,6 +84,12 @@ def _depth_args(depth: argparse.ArgumentParser) -> None:
 def _pose_args(pose: argparse.ArgumentParser) -> None:
     pose.add_argument("--snippet", type=int, default=5, help="frames per ATE snippet (default 5)")
     pose.add_argument(
+        "--pose-iterations",
+        type=int,
+        help="passes of the pose network over each source warped by its current pose, after the first "
+        "(default: 3 for a pair pose network, 0 for the paper's one-pass network)",
+    )
+    pose.add_argument(
         "--yaw-roll",
         type=int,
         metavar="SEED",
@@ -119,7 +125,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.checkpoint:
         from ..model import Predictor
 
-        source = Predictor.from_checkpoint(args.checkpoint, args.device)
+        source = Predictor.from_checkpoint(
+            args.checkpoint, args.device, getattr(args, "pose_iterations", None)
+        )
     report = _depth(args, source) if args.action == "depth" else _pose(args, source)
     if args.json:
         text = json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n"

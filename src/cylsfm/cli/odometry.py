@@ -54,6 +54,12 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fps", type=float, help="take about N frames a second from a video (default: all)")
     p.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
     p.add_argument("--batch-size", type=int, default=8, help="windows and pairs per call (default 8)")
+    p.add_argument(
+        "--pose-iterations",
+        type=int,
+        help="passes of the pose network over each source warped by its current pose, after the first "
+        "(default: 3 for a pair pose network, 0 for the paper's one-pass network)",
+    )
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -106,6 +112,7 @@ def run_odometry(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         device=args.device,
         progress=not args.no_progress,
+        pose_iterations=args.pose_iterations,
     )
     n = len(result.c2w)
     print(

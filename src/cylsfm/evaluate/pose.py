@@ -169,7 +169,10 @@ def _open_run(given: Any, chosen: list[SequenceInfo], stride: int | None, **opti
         return _Run(None, files, f"trajectory {path}", int(stride or 1), **options)
     if options["yaw_roll"] is not None:
         check_rollable(chosen)
-    return _Run(given, {}, model_source(given), int(stride or given.config.data.stride), **options)
+    source = model_source(given)
+    if getattr(given, "pose_iterations", 0):
+        source += f", {given.pose_iterations} pose iterations"
+    return _Run(given, {}, source, int(stride or given.config.data.stride), **options)
 
 
 def _estimate(

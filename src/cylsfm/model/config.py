@@ -51,6 +51,7 @@ class DataConfig:
     split_name: str = "default"
     fov: float = 360.0  # horizontal field of view kept (centred crop); < 360 turns wrap-around off
     mirror: bool = True
+    mirror_exact: bool = False  # full panoramas mirrored about the principal azimuth (camera unchanged)
     color_jitter: bool = True
     roll: bool = False  # random yaw rolls of whole samples; only with the equivariant pose head
     reverse: bool = False  # play half of the samples backwards (the sources swap places)

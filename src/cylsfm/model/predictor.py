@@ -4,6 +4,13 @@
 input (the centred crop of the field of view it was trained on, resized with area averaging), runs the
 networks, and brings depth back to the input's resolution. Depth and translation share the network's
 unknown scale.
+
+A pose network that reads the motion from frame pairs (the antisymmetric pair network of the default
+recipe) is applied more than once (``pose_iterations``): each source is warped into the target's view by
+the current pose with the depth network's depth of the target, the pose network reads what motion is
+left between the target and that warped source, and the two are composed. It is the pose network's own
+reading of a smaller residual motion: nothing is optimised and no photometric cost is evaluated
+(RESULTS.md, "The pose network applied again to its own warp").
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from ..errors import CylsfmError
 from ..geometry import (
     Camera,
     CylindricalCamera,
+    inverse_warp,
     pose_vec_to_mat,
     resize_image,
     roll_columns,
@@ -26,7 +34,10 @@ from ..geometry import (
 from ..runtime import pick_device
 from .build import LoadedModels, load_models
 
-__all__ = ["Predictor"]
+__all__ = ["DEFAULT_POSE_ITERATIONS", "Predictor"]
+
+#: Passes of a pair pose network over its own warp after the first (chosen by measurement, RESULTS.md).
+DEFAULT_POSE_ITERATIONS = 3
 
 
 class Predictor:
@@ -35,20 +46,42 @@ class Predictor:
     Args:
         models: networks loaded with :func:`cylsfm.model.load_models`.
         device: where to run them.
+        pose_iterations: passes of the pose network over the sources warped by its current pose, after
+            the first (see the module docstring); ``None``: :data:`DEFAULT_POSE_ITERATIONS` for a pair pose
+            network (``antisymmetric``), 0 for the paper's one-pass network, whose per-slot prior would
+            add its usual step again at every pass.
+
+    Raises:
+        CylsfmError: ``pose_iterations`` negative, or positive for a one-pass pose network.
     """
 
-    def __init__(self, models: LoadedModels, device: torch.device | str = "cpu") -> None:
+    def __init__(
+        self, models: LoadedModels, device: torch.device | str = "cpu", pose_iterations: int | None = None
+    ) -> None:
         self.models = models
         self.device = torch.device(device)
         self.config = models.config
         self.size = (models.config.data.width, models.config.data.height)
         self.fov = models.config.data.fov
         self.wrap = models.config.wrap
+        pairs = bool(getattr(models.pose_net, "antisymmetric", False))
+        if pose_iterations is None:
+            pose_iterations = DEFAULT_POSE_ITERATIONS if pairs else 0
+        if pose_iterations < 0:
+            raise CylsfmError(f"pose iterations must be >= 0, got {pose_iterations}")
+        if pose_iterations and not pairs:
+            raise CylsfmError(
+                "pose iterations need a pose network that reads frame pairs (model.antisymmetric); this "
+                "checkpoint's one-pass network would add its per-slot prior at every pass"
+            )
+        self.pose_iterations = pose_iterations
 
     @classmethod
-    def from_checkpoint(cls, path: str | os.PathLike[str], device: str = "auto") -> Predictor:
+    def from_checkpoint(
+        cls, path: str | os.PathLike[str], device: str = "auto", pose_iterations: int | None = None
+    ) -> Predictor:
         dev = pick_device(device)
-        return cls(load_models(path, dev), dev)
+        return cls(load_models(path, dev), dev, pose_iterations)
 
     # ------------------------------------------------------------------ input preparation
     # The network was trained on panoramas resized to ``config.data.width x height`` and, for a field of
@@ -131,4 +164,23 @@ class Predictor:
             tgt = roll_columns(tgt, roll).contiguous(memory_format=torch.channels_last)
             src = roll_columns(src, roll)
         pose = pose_vec_to_mat(self.models.pose_net(tgt, src)[0].double())
+        if self.pose_iterations:
+            pose = self._iterate(tgt, src, pose, self.network_camera(camera))
         return roll_pose(pose, -roll, tgt.shape[-1]) if roll else pose
+
+    def _iterate(self, tgt: Tensor, src: Tensor, pose: Tensor, camera: Camera) -> Tensor:
+        """Refine ``pose [B,S,4,4]`` (float64, ``T_tgt_to_src``) of the network inputs ``tgt [B,3,h,w]``,
+        ``src [B,S,3,h,w]`` (``camera``: theirs) by :attr:`pose_iterations` further passes of the pose
+        network: each reads the target and every source warped into the target's view by the current pose
+        with the target's predicted depth (the target's own pixels where the warp leaves the source), and
+        its pose is composed before the current one."""
+        b, s = src.shape[:2]
+        depth = 1.0 / self.models.disp_net(tgt)[0].float().clamp(min=1e-6)
+        depth, target = depth.repeat_interleave(s, 0), tgt.float().repeat_interleave(s, 0)
+        flat = src.flatten(0, 1).float()
+        for _ in range(self.pose_iterations):
+            warped, valid = inverse_warp(flat, depth, pose.flatten(0, 1).float(), camera)
+            warped = torch.where(valid.expand_as(warped), warped, target).to(src.dtype)
+            step = self.models.pose_net(tgt, warped.view(b, s, *warped.shape[1:]))[0]
+            pose = pose_vec_to_mat(step.double()) @ pose
+        return pose

@@ -95,6 +95,7 @@ def odometry(
     device: str = "auto",
     align_config: AlignConfig | None = None,
     progress: bool = True,
+    pose_iterations: int | None = None,
 ) -> OdometryResult:
     """The trajectory of a whole ride: the pose network's steps chained, optionally refined by direct
     photometric alignment; see :mod:`cylsfm.odometry` for the method and the files written.
@@ -105,11 +106,11 @@ def odometry(
         out: the output directory (created; a killed run in it is continued).
         camera: the frames' camera (``camera.json`` or a camera); ``None``: the sequence's own, or full
             cylindrical panoramas of the model's aspect ratio.
-        refine: refine every step by direct alignment.
-        depth_from: a dataset whose ground-truth depth the refinement uses instead of the network's.
+        refine: refine every step by direct alignment; ``depth_from``: a dataset whose ground-truth
+            depth the refinement uses instead of the network's.
         camera_height: the camera's height above the ground in metres: scale the result to metres.
-        save_depth_maps: write each frame's depth to ``OUT/depth/FRAME.npy``.
-        fps: take about this many frames a second from a video; ``stride``: every n-th frame.
+        save_depth_maps: write each frame's depth to ``OUT/depth/FRAME.npy``; ``fps``: take about this
+            many frames a second from a video; ``stride``: every n-th frame.
         keyframe_every: with ``refine``, align each frame to a keyframe, a new one every this many
             frames (1: each frame to the one before); the error then adds up once per keyframe.
         mount_yaw: the azimuth in degrees of the direction of travel in the panorama (0: straight ahead, 90:
@@ -117,7 +118,8 @@ def odometry(
             (:func:`~cylsfm.odometry.mount.mount_yaw`). The pose network reads the frames turned so that
             the camera faces its motion (full-panorama models; crops are read as they are).
         batch_size: windows and pairs per call; ``device``: ``auto``, ``cpu``, ``cuda``, ``cuda:N``.
-        align_config: the refinement's settings; ``progress``: show a progress bar.
+        align_config: the refinement's settings; ``progress``: show a progress bar; ``pose_iterations``:
+            :class:`~cylsfm.model.Predictor`'s (``None``: the model's default; not with a predictor).
 
     Raises:
         CylsfmError: an input, camera, checkpoint or dataset problem, naming the file.
@@ -125,11 +127,8 @@ def odometry(
     started = time.perf_counter()
     _checked(refine, camera_height, batch_size, depth_from, keyframe_every, mount_yaw)
     ride = open_ride(input, fps, stride)
-    predictor = (
-        checkpoint if isinstance(checkpoint, Predictor) else Predictor.from_checkpoint(checkpoint, device)
-    )
-    plan = _plan(ride, predictor, camera)
-    net_cam = plan.network_input.resized(*predictor.size)
+    predictor = _predictor(checkpoint, device, pose_iterations)
+    net_cam = (plan := _plan(ride, predictor, camera)).network_input.resized(*predictor.size)
     config = align_config or AlignConfig()
     depths = _true_depth_files(depth_from, ride, plan)
     turnable = _turnable(predictor, mount_yaw)
@@ -139,8 +138,9 @@ def odometry(
         "stride": stride,
         "keyframe_every": keyframe_every,
         "mount_yaw": mount_yaw,
+        "pose_iterations": predictor.pose_iterations,
+        "ground_fit": camera_height is not None,  # the depth of every frame is needed for it
     }
-    options["ground_fit"] = camera_height is not None  # the depth of every frame is needed for it
     depth_scale = camera_height if save_depth_maps else None
     settings = _settings(ride, checkpoint, plan, config, depth_from, options, save_depth_maps, depth_scale)
     (dest := Path(out)).mkdir(parents=True, exist_ok=True)
@@ -178,6 +178,12 @@ def _turnable(predictor: Predictor, mount_yaw: float | str) -> bool:
     if mount_yaw != "auto" and mount_yaw and not turnable:
         raise InputError(f"mount_yaw: a {predictor.fov:g}-degree model reads no other direction than its own")
     return turnable
+
+
+def _predictor(checkpoint: Any, device: str, pose_iterations: int | None) -> Predictor:
+    if isinstance(checkpoint, Predictor):
+        return checkpoint
+    return Predictor.from_checkpoint(checkpoint, device, pose_iterations)
 
 
 def _settings(

@@ -134,7 +134,12 @@ class Trainer:
         (a root with ``train.txt`` and no ``camera.json`` sequences; cylindrical intrinsics in ``cam.txt``)."""
         d = self.cfg.data
         augment = AugmentConfig(
-            mirror=d.mirror, color_jitter=d.color_jitter, roll=d.roll, reverse=d.reverse, still=d.still
+            mirror=d.mirror,
+            mirror_exact=d.mirror_exact,
+            color_jitter=d.color_jitter,
+            roll=d.roll,
+            reverse=d.reverse,
+            still=d.still,
         )
         root = Path(d.root)
         if is_strip_dataset(root):

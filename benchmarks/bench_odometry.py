@@ -1,5 +1,5 @@
-"""Time ``cylsfm odometry`` on a long ride: frames per second with the pose network alone and with the
-refinement, and where the time goes.
+"""Time ``cylsfm odometry`` on a long ride: frames per second with the pose network alone (one pass, and
+the default further passes over its own warp) and with the refinement, and where the time goes.
 
 The ride is rendered by ``cylsfm synth`` (one sequence, cached in the output folder) and the model is the
 default recipe's networks at the ride's size, untrained: the work per frame does not depend on the weights.
@@ -55,7 +55,8 @@ def main() -> None:
     )
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; {args.frames} frames at {w}x{h}")
     for name, opts in (
-        ("pose network alone", {}),
+        ("pose network alone, one pass (--pose-iterations 0)", {"pose_iterations": 0}),
+        ("pose network alone (default: 3 further passes)", {}),
         (f"--refine --keyframes {args.keyframes}", {"refine": True, "keyframe_every": args.keyframes}),
     ):
         out = work / "out"

@@ -147,6 +147,9 @@ class Predictor:
 
         ``target`` is ``[B,3,H,W]``, ``sources`` ``[B,S,3,H,W]`` with ``S = seq_length - 1`` of the model.
 
+        With :attr:`pose_iterations` the pose network then reads the motion left between the target and
+        each source warped by the pose so far, that many times (see the module docstring).
+
         ``roll`` (full panoramas only): the network reads the frames rolled by this many columns of its
         input (a yaw, :func:`~cylsfm.geometry.roll_columns`) and its poses are turned back
         (:func:`~cylsfm.geometry.roll_pose`): e.g. to show it a camera mounted turned as one that faces its

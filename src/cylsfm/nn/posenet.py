@@ -7,7 +7,7 @@ from torch import nn
 
 from ..errors import check_shape
 from ..geometry.compass import compass_yaw
-from ..geometry.seam import memory_format_of, pad_cat, relu_pad
+from ..geometry.seam import memory_format_of, pad_cat, relu_pad, roll_columns
 from .layers import WrapConv2d, WrapConvTranspose2d, check_input_size, crop_like, init_weights
 
 __all__ = ["PoseExpNet"]
@@ -299,7 +299,7 @@ def _compass_rotation(target: torch.Tensor, sources: torch.Tensor) -> torch.Tens
 
 def _with_antipodes(x: torch.Tensor) -> torch.Tensor:
     """Frames ``[..., 3, H, W]`` with their half-turn copies appended along channels: ``[..., 6, H, W]``."""
-    return torch.cat((x, x.roll(x.shape[-1] // 2, -1)), -3)
+    return torch.cat((x, roll_columns(x, x.shape[-1] // 2)), -3)
 
 
 def _narrow(xp: torch.Tensor, extra: int) -> torch.Tensor:

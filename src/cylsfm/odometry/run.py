@@ -127,8 +127,8 @@ def odometry(
     started = time.perf_counter()
     _checked(refine, camera_height, batch_size, depth_from, keyframe_every, mount_yaw)
     ride = open_ride(input, fps, stride)
-    predictor = _predictor(checkpoint, device, pose_iterations)
-    net_cam = (plan := _plan(ride, predictor, camera)).network_input.resized(*predictor.size)
+    predictor, plan = _model_and_plan(ride, checkpoint, device, pose_iterations, camera)
+    net_cam = plan.network_input.resized(*predictor.size)
     config = align_config or AlignConfig()
     depths = _true_depth_files(depth_from, ride, plan)
     turnable = _turnable(predictor, mount_yaw)
@@ -180,10 +180,16 @@ def _turnable(predictor: Predictor, mount_yaw: float | str) -> bool:
     return turnable
 
 
-def _predictor(checkpoint: Any, device: str, pose_iterations: int | None) -> Predictor:
-    if isinstance(checkpoint, Predictor):
-        return checkpoint
-    return Predictor.from_checkpoint(checkpoint, device, pose_iterations)
+def _model_and_plan(
+    ride: Ride, checkpoint: Any, device: str, pose_iterations: int | None, camera: Any
+) -> tuple[Predictor, Any]:
+    """The predictor (``checkpoint`` itself when it is one) and how the ride's frames reach it."""
+    predictor = (
+        checkpoint
+        if isinstance(checkpoint, Predictor)
+        else Predictor.from_checkpoint(checkpoint, device, pose_iterations)
+    )
+    return predictor, _plan(ride, predictor, camera)
 
 
 def _settings(

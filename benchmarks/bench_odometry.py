@@ -23,6 +23,7 @@ import cylsfm
 from cylsfm.data.synth import generate_dataset
 from cylsfm.model import build_models, preset, save_checkpoint
 from cylsfm.model.config import config_to_dict
+from cylsfm.odometry import OdometrySettings
 
 
 def main() -> None:
@@ -61,7 +62,9 @@ def main() -> None:
     ):
         out = work / "out"
         shutil.rmtree(out, ignore_errors=True)
-        result = cylsfm.odometry(data / "seq_000", ckpt, out, device="cpu", progress=False, **opts)
+        result = cylsfm.odometry(
+            data / "seq_000", ckpt, out, OdometrySettings(device="cpu", progress=False, **opts)
+        )
         n = len(result.c2w)
         parts = ", ".join(f"{k} {v:.1f} s" for k, v in sorted(result.timings.items(), key=lambda kv: -kv[1]))
         print(f"{name}: {result.seconds:.1f} s, {n / result.seconds:.2f} frames/s ({parts})")

@@ -28,6 +28,7 @@ import cylsfm
 from cylsfm.data import read_split, scan_dataset
 from cylsfm.data.format import SequenceWriter, load_depth, load_image
 from cylsfm.geometry import roll_columns, roll_pose
+from cylsfm.odometry import OdometrySettings
 
 DATA = Path("experiments/out/data")
 VARIANTS = {
@@ -73,7 +74,9 @@ def run(checkpoint: str, out: Path, variants: list[str]) -> dict:
         per_ride = []
         for n, name in enumerate(test_rides()):
             ride = rolled_copy(name, out / "rolled-data", seed=n) if rolled else DATA / name
-            result = cylsfm.odometry(ride, checkpoint, out / variant / name, progress=False, **opts)
+            result = cylsfm.odometry(
+                ride, checkpoint, out / variant / name, OdometrySettings(progress=False, **opts)
+            )
             per_ride.append(result.metrics)
             print(
                 f"{variant} {name}: {result.seconds:.1f} s, {len(result.c2w) / result.seconds:.2f} frames/s",

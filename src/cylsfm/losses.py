@@ -29,12 +29,10 @@ from torch import Tensor
 
 from .errors import InputError, check_shape
 from .geometry import Camera, column_difference, inverse_warp, pad_for_window, resize_image
-from .geometry.align import AlignConfig, align
 
 __all__ = [
     "LossConfig",
     "LossOutput",
-    "alignment_distillation",
     "explainability_loss",
     "gradient_x",
     "gradient_y",
@@ -47,7 +45,6 @@ __all__ = [
     "second_order_terms",
     "smoothness_terms",
     "ssim_error",
-    "standing_still_loss",
     "view_synthesis_loss",
     "warp_sources",
 ]
@@ -146,16 +143,6 @@ def explainability_loss(mask: Tensor) -> Tensor:
 
 
 # ----------------------------------------------------------------------------- pyramids
-def standing_still_loss(pose_vec: Tensor, still: Tensor) -> Tensor:
-    """Zero motion for a camera standing still: the mean L1 norm of the pose 6-vectors ``[B,S,6]``
-    (translation in depth units, axis-angle in radians) of the samples where ``still [B]`` (bool) is set;
-    0 when none is. The photometric term cannot ask for it: with auto-masking a standing camera's pixels
-    are all masked, and without it any depth explains identical frames."""
-    if not bool(still.any()):
-        return pose_vec.new_zeros(())
-    return pose_vec[still].abs().sum(-1).mean()
-
-
 def image_pyramid(image: Tensor, sizes: list[tuple[int, int]]) -> list[Tensor]:
     """Area-downsampled copies of ``image [..., C, H, W]`` at ``sizes`` = ``[(H_s, W_s), ...]``.
 
@@ -189,8 +176,6 @@ class LossConfig:
         automask: ignore pixels whose error without warping is lower than with warping (static scene
             parts, objects moving with the camera).
         full_resolution: upsample every scale's disparity to the input size for the photometric term.
-        still_weight: weight of :func:`standing_still_loss` on the samples of a standing camera (the
-            trainer's ``data.still`` fraction; without such samples the term is not computed).
     """
 
     smooth_weight: float = 2.0
@@ -203,10 +188,9 @@ class LossConfig:
     min_reprojection: bool = False
     automask: bool = False
     full_resolution: bool = False
-    still_weight: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("smooth_weight", "image_smooth_weight", "explain_weight", "still_weight"):
+        for name in ("smooth_weight", "image_smooth_weight", "explain_weight"):
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.ssim_weight <= 1:
@@ -422,44 +406,3 @@ def view_synthesis_loss(
     total = photometric + smooth + explain
     terms = {"photometric": photometric, "smooth": smooth, "explain": explain, "total": total}
     return LossOutput(total=total, terms=terms, warped=warped_log, error=error_log)
-
-
-def alignment_distillation(
-    target: Tensor, sources: Tensor, disp: Tensor, poses: Tensor, camera: Camera, terms: str = "pose"
-) -> Tensor:
-    """L1 distance of the pose network's poses ``[B,S,4,4]`` to their refinement by direct alignment.
-
-    Every (target, source) pair is aligned (:func:`~cylsfm.geometry.align.align`, 2 levels of 4
-    iterations) from the network's pose with the depth ``1 / disp`` (no gradient through either); the
-    term is the translation difference over the aligned step's length plus the rotation matrices'
-    absolute difference (``terms="direction"``: the L1 distance of the unit translation directions
-    only), averaged over the pairs whose alignment lowered the photometric cost.
-    """
-    b, s = poses.shape[:2]
-    with torch.no_grad():
-        depth = (1.0 / disp.float().clamp(min=1e-6)).detach()
-        h, w = depth.shape[-2:]
-        cam = camera.index(0) if isinstance(camera.fx, Tensor) and camera.fx.numel() > 1 else camera
-        if (w, h) != cam.size:
-            cam = cam.resized(w, h)
-        tgt = F.interpolate(target, size=(h, w), mode="area") if target.shape[-2:] != (h, w) else target
-        src = sources.flatten(0, 1)
-        src = F.interpolate(src, size=(h, w), mode="area") if src.shape[-2:] != (h, w) else src
-        result = align(
-            tgt.repeat_interleave(s, 0),
-            src,
-            depth.repeat_interleave(s, 0),
-            poses.detach().flatten(0, 1).double(),
-            cam,
-            config=AlignConfig(levels=2, iterations=4),
-        )
-        aligned = result.poses.float().view(b, s, 4, 4)
-        better = (result.cost < result.start_cost).float().view(b, s)
-    length = aligned[..., :3, 3].norm(dim=-1).clamp(min=1e-3)
-    if terms == "direction":
-        own = poses[..., :3, 3] / poses[..., :3, 3].norm(dim=-1, keepdim=True).clamp(min=1e-6)
-        err = (own - aligned[..., :3, 3] / length[..., None]).abs().sum(-1)
-        return (err * better).sum() / better.sum().clamp(min=1)
-    t_err = (poses[..., :3, 3] - aligned[..., :3, 3]).abs().sum(-1) / length
-    r_err = (poses[..., :3, :3] - aligned[..., :3, :3]).abs().sum((-1, -2))
-    return ((t_err + r_err) * better).sum() / better.sum().clamp(min=1)

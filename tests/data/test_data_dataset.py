@@ -1,4 +1,3 @@
-import math
 import pickle
 import warnings
 
@@ -18,11 +17,9 @@ from cylsfm.data import (
     StaticFilter,
     camera_of,
 )
-from cylsfm.data.augment import augment_geometry
 from cylsfm.data.synth.room import make_pose, render_room
 from cylsfm.errors import InputError
-from cylsfm.geometry import relative_pose, yaw_matrix
-from cylsfm.geometry.seam import roll_pose
+from cylsfm.geometry import relative_pose
 
 W, H = 64, 16
 KEYS = {"target", "sources", "intrinsics", "camera_model", "size", "sequence", "frame", "index"}
@@ -134,8 +131,6 @@ def test_bad_arguments(tmp_path):
     # invalid argument values are the project's own error (the CLI reports them), and still ValueErrors
     with pytest.raises(InputError, match="seq_length"):
         SequenceDataset(tmp_path, seq_length=2)
-    with pytest.raises(InputError, match="roll"):
-        SequenceDataset(tmp_path, augment=AugmentConfig(roll=True))
     with pytest.raises(InputError, match="mirror_prob"):
         AugmentConfig(mirror_prob=2.0)
     with pytest.raises(InputError, match="static filter"):
@@ -221,7 +216,7 @@ def test_frame_cache_gives_the_same_samples(tmp_path, resize):
     time; a frame that fails to decode still fails where it is used, naming the file."""
     write_seq(tmp_path / "a", n=6, poses=True, mask=True, seed=1)
     write_seq(tmp_path / "b", n=5, seed=2)
-    aug = AugmentConfig(roll=True, reverse=True)
+    aug = AugmentConfig()
     plain = SequenceDataset(tmp_path, size=resize, augment=aug)
     cached = SequenceDataset(tmp_path, size=resize, augment=aug, cache=True)
     assert plain.frame_cache is None and cached.frame_cache is not None
@@ -314,104 +309,12 @@ def test_mirror_keeps_geometry_consistent(room_root):
     assert torch.equal(s["depth"], plain["depth"].flip(-1))
     assert float(s["intrinsics"][0, 1]) == pytest.approx(127 - 64)
     assert warp_ratio(s) > 3
-    # mirror_exact: about the principal azimuth, column u -> (2 cx - u) mod W, the same camera
-    aug = AugmentConfig(mirror_prob=1.0, mirror_exact=True, color_jitter=False)
-    e = SequenceDataset(room_root, augment=aug)[0]
-    assert torch.equal(e["target"], torch.roll(plain["target"].flip(-1), 1, dims=-1))
-    assert torch.equal(e["depth"], torch.roll(plain["depth"].flip(-1), 1, dims=-1))
-    assert torch.equal(e["intrinsics"], plain["intrinsics"])
-    assert warp_ratio(e) > 3
     # the test can fail: the unmirrored poses do not explain the mirrored images
     assert warp_ratio(s, plain["pose_gt"]) < 2
 
 
-def test_mirror_maps_azimuth_to_its_negative():
-    """With mirror_exact a lit column at azimuth theta ends at -theta in the same camera; a crop keeps the
-    flip of columns and moves its principal point instead."""
-    cam = CylindricalCamera.full(16, 4)
-    frames = torch.zeros(3, 4, 16, 3, dtype=torch.uint8)
-    u = 11  # theta = 2 pi (11 - 8) / 16
-    frames[..., u, :] = 255
-    pose = torch.eye(4, dtype=torch.float64).expand(2, 4, 4).clone()
-    pose[:, 0, 3] = 0.3
-    aug = AugmentConfig(mirror_prob=1.0, mirror_exact=True, color_jitter=False)
-    out, cam2, _, _, pose2 = augment_geometry(frames, cam, None, None, pose, aug)
-    assert cam2 == cam
-    lit = out[0, 0, :, 0].nonzero().flatten().tolist()
-    assert lit == [2 * 8 - u]  # theta -> -theta
-    assert float(pose2[0, 0, 3]) == pytest.approx(-0.3)
-    crop = CylindricalCamera(fx=16 / (2 * math.pi), fy=2.0, cx=4.0, cy=1.5, width=8, height=4)
-    out, crop2, _, _, _ = augment_geometry(frames[..., :8, :], crop, None, None, None, aug)
-    assert torch.equal(out, frames[..., :8, :].flip(2))
-    assert float(crop2.cx) == pytest.approx(3.0)
-
-
-def _roll_of(aug, plain):
-    for k in range(aug.shape[-1]):
-        if torch.equal(torch.roll(plain, k, dims=-1), aug):
-            return k
-    raise AssertionError("not a roll")
-
-
-def test_roll_keeps_geometry_consistent(room_root):
-    plain = SequenceDataset(room_root)[0]
-    ds = SequenceDataset(room_root, augment=AugmentConfig(mirror=False, color_jitter=False, roll=True))
-    torch.manual_seed(0)
-    checked_sign = 0
-    for _ in range(8):
-        s = ds[0]
-        k = _roll_of(s["target"], plain["target"])
-        assert torch.equal(s["depth"], torch.roll(plain["depth"], k, dims=-1))
-        # the poses turn with the panorama: T' = Y T Y^-1 with Y the yaw by 2 pi k / W
-        assert torch.allclose(s["pose_gt"], roll_pose(plain["pose_gt"].double(), k, 128).float(), atol=1e-6)
-        assert warp_ratio(s) > 3
-        if 16 <= k % 64 <= 48:
-            # the opposite yaw (off by 2a, here 90 to 270 degrees) does not explain the rolled images
-            y = torch.eye(4, dtype=torch.float64)
-            y[:3, :3] = yaw_matrix(-2 * math.pi * k / 128, dtype=torch.float64)
-            wrong = (y @ plain["pose_gt"].double() @ y.T).float()
-            assert warp_ratio(s, wrong) < 2
-            checked_sign += 1
-    assert checked_sign >= 2
-
-
-def test_reverse_swaps_the_sources_with_their_poses(room_root):
-    plain = SequenceDataset(room_root)[0]
-    s = SequenceDataset(
-        room_root, augment=AugmentConfig(mirror=False, color_jitter=False, reverse=True, reverse_prob=1.0)
-    )[0]
-    assert torch.equal(s["target"], plain["target"]) and torch.equal(s["depth"], plain["depth"])
-    assert torch.equal(s["sources"], plain["sources"].flip(0))
-    assert torch.equal(s["pose_gt"], plain["pose_gt"].flip(0))
-    assert warp_ratio(s) > 3
-    # the test can fail: the poses in time order do not explain the reversed sources
-    assert warp_ratio(s, plain["pose_gt"]) < 2
-    ds = SequenceDataset(room_root, augment=AugmentConfig(mirror=False, color_jitter=False, reverse=True))
-    torch.manual_seed(0)
-    flips = [torch.equal(ds[0]["sources"], plain["sources"].flip(0)) for _ in range(16)]
-    assert 0 < sum(flips) < 16
-    with pytest.raises(InputError, match="reverse_prob"):
-        AugmentConfig(reverse_prob=-0.1)
-
-
-def test_still_makes_a_standing_camera(room_root):
-    plain = SequenceDataset(room_root)[0]
-    aug = AugmentConfig(mirror=False, color_jitter=True, reverse=True, still=1.0)
-    s = SequenceDataset(room_root, augment=aug)[0]
-    assert torch.equal(s["sources"], s["target"][None].expand_as(s["sources"]))
-    assert torch.equal(s["pose_gt"], torch.eye(4, dtype=s["pose_gt"].dtype).expand_as(plain["pose_gt"]))
-    assert not torch.equal(s["sources"], plain["sources"])
-    ds = SequenceDataset(room_root, augment=AugmentConfig(mirror=False, color_jitter=False, still=0.5))
-    torch.manual_seed(0)
-    samples = [ds[0] for _ in range(16)]
-    still = [torch.equal(x["sources"][0], x["target"]) for x in samples]
-    assert 0 < sum(still) < 16
-    with pytest.raises(InputError, match="still"):
-        AugmentConfig(still=2.0)
-
-
 def test_all_augmentations_together(room_root):
-    ds = SequenceDataset(room_root, augment=AugmentConfig(mirror_prob=0.5, roll=True, reverse=True))
+    ds = SequenceDataset(room_root, augment=AugmentConfig(mirror_prob=0.5))
     torch.manual_seed(1)
     for _ in range(4):
         s = ds[0]

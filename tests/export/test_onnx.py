@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from cylsfm.cli import main
-from cylsfm.geometry.seam import standard_ops
 from cylsfm.model import build_models, save_checkpoint
 from cylsfm.model.config import apply_overrides, config_to_dict, preset
 from cylsfm.nn import DispNet, PoseExpNet
+from cylsfm.nn.padding import standard_ops
 
 onnxruntime = pytest.importorskip("onnxruntime")
 

@@ -1,4 +1,5 @@
-"""The seam of full panoramas (cylsfm.geometry.seam): circular padding (plain and fused), differences,
+"""The seam of full panoramas (cylsfm.geometry.seam, and the networks' fused padding kernels of
+cylsfm.nn.padding): circular padding (plain and fused), differences,
 wrapped resizes and the yaw rolls of panoramas and their poses."""
 
 from __future__ import annotations
@@ -14,10 +15,8 @@ from cylsfm.geometry import (
     circular_pad,
     column_difference,
     inverse_warp,
-    pad_cat,
     pad_for_window,
     relative_pose,
-    relu_pad,
     resize_image,
     roll_angle,
     roll_columns,
@@ -28,6 +27,8 @@ from cylsfm.geometry import (
     yaw_matrix,
 )
 from cylsfm.geometry.seam import memory_format_of
+from cylsfm.nn import padding
+from cylsfm.nn.padding import pad_cat, relu_pad
 
 
 def _reference_pad(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
@@ -37,15 +38,24 @@ def _reference_pad(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
 
 
 @pytest.mark.parametrize(("left", "right", "width"), [(0, 0, 5), (1, 1, 5), (2, 1, 5), (3, 0, 2), (7, 9, 3)])
-def test_circular_pad_matches_index_arithmetic_with_gradients(left: int, right: int, width: int) -> None:
+@pytest.mark.parametrize("pad", [circular_pad, padding.circular_pad], ids=["geometry", "nn"])
+def test_circular_pad_matches_index_arithmetic_with_gradients(left: int, right: int, width: int, pad) -> None:
     torch.manual_seed(0)
     x = torch.randn(2, 3, 4, width, requires_grad=True)
-    out, ref = circular_pad(x, left, right), _reference_pad(x, left, right)
+    out, ref = pad(x, left, right), _reference_pad(x, left, right)
     torch.testing.assert_close(out, ref, rtol=0, atol=0)
     g = torch.randn_like(ref)
     (got,) = torch.autograd.grad((out * g).sum(), x)
     (want,) = torch.autograd.grad((ref * g).sum(), x)
     torch.testing.assert_close(got, want)
+
+
+def test_zero_padding_of_the_fused_kernels_is_a_bounded_image() -> None:
+    y = torch.randn(1, 2, 3, 5)
+    torch.testing.assert_close(relu_pad(y, 2, circular=False), torch.nn.functional.pad(y.relu(), (2, 2)))
+    a, b = torch.randn(1, 1, 3, 5), torch.randn(1, 2, 3, 5)
+    want = torch.nn.functional.pad(torch.cat((a, b), 1), (1, 1))
+    torch.testing.assert_close(pad_cat([a, b], 1, circular=False), want)
 
 
 def test_pad_for_window_is_circular_across_and_reflected_along() -> None:

@@ -44,25 +44,8 @@ def test_bad_configurations_are_clear_errors(tmp_path):
     with pytest.raises(ConfigError, match="key=value"):
         apply_overrides(preset("default"), ["loss.ssim_weight"])
     with pytest.raises(ConfigError, match="equivariant"):
-        apply_overrides(preset("improved"), ["data.roll=true"])
-    with pytest.raises(ConfigError, match="pose_level"):
-        apply_overrides(preset("default"), ["model.pose_level=8"])
-    with pytest.raises(ConfigError, match="pose_level must be >= 5"):
-        apply_overrides(preset("improved"), ["model.explainability=true", "model.pose_level=4"])
-    with pytest.raises(ConfigError, match="pose_antipodal"):
-        apply_overrides(preset("default"), ["model.pose_antipodal=true", "data.fov=180"])
+        apply_overrides(preset("improved"), ["model.pose_head=equivariant", "data.fov=90"])
     with pytest.raises(ConfigError, match="preset"):
         preset("nope")
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "missing.yaml")
-
-
-def test_plain_photometric_warm_up_schedule():
-    cfg = apply_overrides(preset("improved"), ["plain_photometric_steps=3"])
-    plain, later = cfg.loss_at(2), cfg.loss_at(3)
-    assert later == cfg.loss
-    assert (plain.ssim_weight, plain.min_reprojection, plain.automask, plain.full_resolution) == (0, 0, 0, 0)
-    assert plain.image_smooth_weight == cfg.loss.image_smooth_weight  # smoothness is not part of the warm-up
-    assert preset("improved").loss_at(0) == preset("improved").loss
-    with pytest.raises(ConfigError, match="plain_photometric_steps"):
-        apply_overrides(preset("improved"), ["plain_photometric_steps=-1"])

@@ -13,6 +13,7 @@ import cylsfm
 from cylsfm.data.format import SequenceWriter
 from cylsfm.data.synth.room import make_pose, render_room
 from cylsfm.geometry import CylindricalCamera, roll_columns
+from cylsfm.odometry import OdometrySettings
 from cylsfm.odometry.mount import mount_yaw
 
 W, H, N = 128, 32, 10
@@ -64,11 +65,14 @@ def test_odometry_turns_the_network_to_the_direction_found_and_says_so(frames, c
         writer.add_frame((im.permute(1, 2, 0) * 255).round().byte().numpy(), d[0].numpy())
     writer.finish(poses, timestamps=np.arange(N) * 0.2)
     out = tmp_path / "o"
-    cylsfm.odometry(seq, ckpt, out, refine=True, depth_from=tmp_path / "data", device="cpu", progress=False)
+    settings = OdometrySettings(refine=True, depth_from=tmp_path / "data", device="cpu", progress=False)
+    cylsfm.odometry(seq, ckpt, out, settings)
     summary = json.loads((out / "odometry.json").read_text())["direction_of_travel"]
     assert summary["pairs"] > 0 and "found" in summary["how"]
     assert abs(_wrapped(summary["yaw_deg"] - 360.0 * 77 / W - _travel_deg(3))) < 12
     assert "direction of travel" in (out / "trajectory.txt").read_text()
-    given = cylsfm.odometry(seq, ckpt, tmp_path / "g", mount_yaw=90.0, device="cpu", progress=False)
+    given = cylsfm.odometry(
+        seq, ckpt, tmp_path / "g", OdometrySettings(mount_yaw=90.0, device="cpu", progress=False)
+    )
     text = given.trajectory.read_text()
     assert "90.0 deg (given)" in text

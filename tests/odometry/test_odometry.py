@@ -15,6 +15,7 @@ from cylsfm.cli import main
 from cylsfm.data.format import SequenceWriter
 from cylsfm.data.synth.room import make_pose, render_room
 from cylsfm.geometry import CylindricalCamera, rotation_y
+from cylsfm.odometry import OdometrySettings
 from cylsfm.odometry import run as odometry_run
 from cylsfm.odometry.track import Tracker, keyframe_steps
 
@@ -69,7 +70,10 @@ def test_refined_with_true_depth_recovers_the_ride(ckpt, ride, tmp_path, capsys)
 
 def test_library_call_and_metres_from_the_camera_height(ckpt, ride, tmp_path):
     result = cylsfm.odometry(
-        ride, ckpt, tmp_path / "o", camera_height=1.5, save_depth_maps=True, device="cpu", progress=False
+        ride,
+        ckpt,
+        tmp_path / "o",
+        OdometrySettings(camera_height=1.5, save_depth_maps=True, device="cpu", progress=False),
     )
     assert result.unit == "metres" and result.metres_per_unit > 0
     assert "camera height 1.5 m" in (tmp_path / "o" / "trajectory.txt").read_text()
@@ -81,7 +85,9 @@ def test_library_call_and_metres_from_the_camera_height(ckpt, ride, tmp_path):
 
 def test_a_killed_run_continues_to_the_same_trajectory(ckpt, ride, tmp_path, monkeypatch):
     monkeypatch.setattr(odometry_run, "CHUNK", 3)
-    whole = cylsfm.odometry(ride, ckpt, tmp_path / "whole", refine=True, device="cpu", progress=False)
+    whole = cylsfm.odometry(
+        ride, ckpt, tmp_path / "whole", OdometrySettings(refine=True, device="cpu", progress=False)
+    )
     push = Tracker.push
     calls = {"n": 0}
 
@@ -93,10 +99,14 @@ def test_a_killed_run_continues_to_the_same_trajectory(ckpt, ride, tmp_path, mon
 
     monkeypatch.setattr(Tracker, "push", dying_push)
     with pytest.raises(KeyboardInterrupt):
-        cylsfm.odometry(ride, ckpt, tmp_path / "killed", refine=True, device="cpu", progress=False)
+        cylsfm.odometry(
+            ride, ckpt, tmp_path / "killed", OdometrySettings(refine=True, device="cpu", progress=False)
+        )
     assert not (tmp_path / "killed" / "trajectory.txt").exists()
     monkeypatch.setattr(Tracker, "push", push)
-    resumed = cylsfm.odometry(ride, ckpt, tmp_path / "killed", refine=True, device="cpu", progress=False)
+    resumed = cylsfm.odometry(
+        ride, ckpt, tmp_path / "killed", OdometrySettings(refine=True, device="cpu", progress=False)
+    )
     np.testing.assert_allclose(resumed.c2w, whole.c2w, atol=1e-6)
     assert resumed.timings["depth"] < whole.timings["depth"]  # the first chunks were not redone
 
@@ -114,7 +124,9 @@ def test_a_video_ride(ckpt, ride, tmp_path):
                 container.mux(packet)
         for packet in stream.encode(None):
             container.mux(packet)
-    result = cylsfm.odometry(video, ckpt, tmp_path / "v", refine=True, device="cpu", progress=False)
+    result = cylsfm.odometry(
+        video, ckpt, tmp_path / "v", OdometrySettings(refine=True, device="cpu", progress=False)
+    )
     assert len(result.c2w) == N_FRAMES
     np.testing.assert_allclose(result.times, np.arange(N_FRAMES) / 5, atol=1e-6)
     assert result.metrics is None

@@ -244,73 +244,47 @@ def test_data_parallel_with_two_cpu_processes(tiny_data, tmp_path):
     assert [r["step"] for r in _metrics(run)] == [1, 2]  # logged once, by rank 0
 
 
-def test_plain_photometric_warm_up_is_used_by_the_trainer(tiny_data, tmp_path):
-    """During the warm-up the trainer's loss is the plain one; after it, the configured one."""
-    trainer = Trainer(_cfg(tiny_data, max_steps=1, plain_photometric_steps=1), tmp_path / "run")
-    batch = next(iter(trainer._loader()))
-    plain_items = ["loss.ssim_weight=0", "loss.min_reprojection=false", "loss.automask=false"]
-    plain = Trainer(
-        apply_overrides(_cfg(tiny_data), [*plain_items, "loss.full_resolution=false"]), tmp_path / "plain"
-    )
-    plain.model.load_state_dict(trainer.model.state_dict())
-    warm, _, _ = trainer.compute_loss(batch)
-    ref, _, _ = plain.compute_loss(batch)
-    trainer.step = 1
-    after, _, _ = trainer.compute_loss(batch)
-    torch.testing.assert_close(warm, ref)
-    assert not torch.allclose(warm, after)
-
-
-def test_standing_camera_samples_and_the_compass_are_trained(tiny_data, tmp_path):
-    """data.still: samples whose sources are the target get the zero-motion term (logged, in the total, also
-    for a batch of standing cameras only); model.compass: the restored pose network adds the compass's yaw."""
+def test_the_compass_is_trained_and_restored(tiny_data, tmp_path):
+    """model.compass with the one-pass network: the total is the sum of the logged terms, and the restored
+    pose model adds the compass's yaw to its network's pose."""
     from cylsfm.geometry import roll_angle
 
-    run = tmp_path / "still"
-    extra = {"data.still": 1.0, "model.compass": "true", "model.antisymmetric": "false", "data.width": 256}
+    run = tmp_path / "compass"
+    extra = {"model.compass": "true", "model.antisymmetric": "false", "data.width": 256}
     assert train(_cfg(tiny_data, max_steps=2, **extra), run, progress=False)["steps"] == 2
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 2
     for row in rows:
-        assert row["still"] > 0 and math.isfinite(row["total"])
-        parts = row["photometric"] + row["smooth"] + row["explain"] + row["still"]
-        assert row["total"] == pytest.approx(parts, rel=1e-6)
+        assert math.isfinite(row["total"])
+        assert row["total"] == pytest.approx(row["photometric"] + row["smooth"] + row["explain"], rel=1e-6)
     models = load_models(run)
-    assert models.config.model.compass and models.pose_net.compass
+    assert models.config.model.compass and models.pose_net.compass is not None
     gen = torch.Generator().manual_seed(0)
     target = torch.nn.functional.avg_pool2d(torch.rand(1, 3, 32, 256, generator=gen), 3, 1, 1)
     sources = torch.stack((target, target.roll(16, -1)), 1)
     with torch.no_grad():
         with_compass, _ = models.pose_net(target, sources)
-        models.pose_net.compass = False
-        without, _ = models.pose_net(target, sources)
+        without, _ = models.pose_net.net(target, sources)
     expected = torch.zeros(1, 2, 6)
     expected[0, 1, 4] = roll_angle(16, 256)
     torch.testing.assert_close(with_compass - without, expected, rtol=1e-5, atol=1e-6)
 
 
-def test_compass_and_still_settings_are_checked():
+def test_compass_and_pose_settings_are_checked():
     from cylsfm.model import build_models
     from cylsfm.model.config import ConfigError
 
     crop = apply_overrides(preset("default"), ["model.compass=true", "data.fov=180"])
-    assert not build_models(crop)[1].compass  # a crop is no full panorama: no compass
-    assert build_models(crop)[1].pose_head == "mean"  # "auto": nor azimuths on the full circle
-    assert build_models(preset("default"))[1].pose_head == "equivariant"
+    assert build_models(crop)[1].compass is None  # a crop is no full panorama: no compass
+    assert type(build_models(crop)[1].net.pair.head).__name__ == "MeanPoseHead"  # "auto": no full circle
+    assert type(build_models(preset("default"))[1].net.pair.head).__name__ == "EquivariantPoseHead"
     with pytest.raises(ConfigError, match="equivariant needs full 360-degree"):
         apply_overrides(preset("default"), ["model.pose_head=equivariant", "data.fov=180"])
-    for bad in ("data.roll=true", "data.reverse=true"):  # a motion per slot cannot follow them
-        with pytest.raises(ConfigError, match="scaffold"):
-            apply_overrides(preset("default"), [bad])
-    with pytest.raises(ConfigError, match="adds nothing"):
-        apply_overrides(preset("default"), ["data.still=0.2"])
-    with pytest.raises(ConfigError, match="still"):
-        apply_overrides(preset("default"), ["data.still=1.5"])
     with pytest.raises(ConfigError, match="antisymmetric"):
         apply_overrides(preset("default"), ["model.antisymmetric=true", "model.explainability=true"])
 
 
-def test_slot_prior_fade_schedule_and_checks():
+def test_slot_prior_scaffold_is_built_for_the_pair_network_only(tiny_data, tmp_path):
     from cylsfm.model import build_models
     from cylsfm.model.config import ConfigError
 
@@ -318,16 +292,15 @@ def test_slot_prior_fade_schedule_and_checks():
         preset("improved"),
         ["model.antisymmetric=true", "model.prior_fade_start=10", "model.prior_fade_end=30"],
     )
-    weights = [cfg.model.prior_weight_at(s) for s in (0, 9, 10, 20, 29, 30, 1000)]
-    assert weights == [1.0, 1.0, 1.0, 0.5, pytest.approx(0.05), 0.0, 0.0]
-    pose = build_models(cfg)[1]
-    assert pose.slot_prior is not None and pose.slot_prior.shape == (2, 6)
-    assert build_models(preset("improved"))[1].slot_prior is None
-    plain = apply_overrides(preset("default"), ["model.antisymmetric=false"])  # the fade is then unused
-    assert plain.model.prior_weight_at(0) == 0.0 and build_models(plain)[1].slot_prior is None
-    off = apply_overrides(preset("default"), ["model.prior_fade_end=0"])  # 0: off, whatever the start
-    assert not off.model.scaffold and off.model.unfinished_fade(0) is None
-    assert "faded out (step 30)" in cfg.model.unfinished_fade(29) and cfg.model.unfinished_fade(30) is None
+    assert cfg.model.scaffold
+    assert not apply_overrides(preset("default"), ["model.antisymmetric=false"]).model.scaffold
+    assert not apply_overrides(preset("default"), ["model.prior_fade_end=0"]).model.scaffold
+    assert "slot_prior" not in str(list(build_models(cfg)[1].state_dict()))  # never in the inference model
+    trainer = Trainer(_cfg(tiny_data, max_steps=1), tmp_path / "run")
+    assert trainer.scaffold is not None and trainer.scaffold.fade_end == trainer.cfg.model.prior_fade_end
+    assert (
+        Trainer(_cfg(tiny_data, max_steps=1, **{"model.prior_fade_end": 0}), tmp_path / "b").scaffold is None
+    )
     with pytest.raises(ConfigError, match="start <= end"):
         apply_overrides(
             preset("default"),

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .. import __version__
+from .._version import __version__
 from ..errors import CylsfmError
 from . import camera, demo, evaluate, export, odometry, predict, prepare, split, synth, train  # noqa: F401  (register the subcommands)
 from .base import COMMANDS, Command, command, parse_size

@@ -68,7 +68,7 @@ def _mount(value: str) -> float | str:
     try:
         return value if value == "auto" else float(value)
     except ValueError:
-        return value  # odometry() names the problem
+        return value  # OdometrySettings names the problem
 
 
 def _cell(m: dict, key: str, fmt: str = "9.4f") -> str:
@@ -94,12 +94,9 @@ def _print_metrics(metrics: dict) -> None:
     _odometry_args,
 )
 def run_odometry(args: argparse.Namespace) -> int:
-    from ..odometry import odometry
+    from ..odometry import OdometrySettings, odometry
 
-    result = odometry(
-        args.input,
-        args.checkpoint,
-        args.out,
+    settings = OdometrySettings(
         camera=args.camera,
         refine=args.refine,
         depth_from=args.depth_from,
@@ -114,6 +111,7 @@ def run_odometry(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         pose_iterations=args.pose_iterations,
     )
+    result = odometry(args.input, args.checkpoint, args.out, settings)
     n = len(result.c2w)
     print(
         f"wrote {result.trajectory} ({n} frames, {result.unit}) in {result.seconds:.1f} s ({n / max(result.seconds, 1e-9):.1f} frames/s)"

@@ -23,9 +23,6 @@ FLAG_KEYS = {
     "wrap": "model.wrap",
     "fov": "data.fov",
     "pose_head": "model.pose_head",
-    "roll": "data.roll",
-    "reverse": "data.reverse",
-    "still": "data.still",
     "compass": "model.compass",
     "antisymmetric": "model.antisymmetric",
     "mask": "data.mask",
@@ -52,20 +49,6 @@ def _train_args(p: argparse.ArgumentParser) -> None:
         "--pose-head",
         choices=["mean", "equivariant", "auto"],
         help="auto (default): equivariant on full panoramas, mean on crops",
-    )
-    p.add_argument(
-        "--roll", action=argparse.BooleanOptionalAction, default=None, help="random yaw-roll augmentation"
-    )
-    p.add_argument(
-        "--reverse",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="play half of the training snippets backwards (time-reversal augmentation)",
-    )
-    p.add_argument(
-        "--still",
-        type=float,
-        help="fraction of training snippets made a camera standing still (sources = target: zero motion)",
     )
     p.add_argument(
         "--compass",

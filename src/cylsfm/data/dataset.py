@@ -18,7 +18,7 @@ from torch.utils.data import Dataset
 
 from ..errors import InputError
 from ..geometry import Camera, relative_pose
-from .augment import AugmentConfig, check_rollable
+from .augment import AugmentConfig
 from .cache import FrameCache, available_memory_bytes
 from .format import (
     DatasetError,
@@ -91,7 +91,7 @@ class SequenceDataset(Dataset):
     Raises:
         DatasetError: naming the file, for any invalid input (see :func:`scan_dataset`); at load time for a
             corrupt image or depth map (unless ``skip_bad``).
-        InputError: for invalid arguments (even ``seq_length``, ``roll`` on a camera that does not wrap);
+        InputError: for invalid arguments (even ``seq_length``);
             a ``ValueError`` too.
     """
 
@@ -138,9 +138,6 @@ class SequenceDataset(Dataset):
         self.has_depth = load_ground_truth and any(s.depths is not None for s in used_seqs)
         self.has_pose = load_ground_truth and bool(used_seqs) and all(s.poses is not None for s in used_seqs)
         self.has_mask = any(s.mask is not None for s in used_seqs)
-        check_rollable(
-            augment, ((f"the camera of sequence {self.sequences[s].name}", self.cameras[s]) for s in used)
-        )
         # found at load time (per process): frames that fail to decode ((seq, -1): the mask), and
         # targets whose depth map is bad
         self._bad_frames: set[tuple[int, int]] = set()

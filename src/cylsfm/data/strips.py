@@ -24,7 +24,7 @@ from torch.utils.data import Dataset
 
 from ..errors import InputError
 from ..geometry import Camera, CameraError
-from .augment import AugmentConfig, check_rollable
+from .augment import AugmentConfig
 from .io import DatasetError, image_size, load_image, parse_numbers, read_text
 from .sample import build_sample, camera_class, check_size
 from .splits import check_snippet_args
@@ -76,7 +76,7 @@ class StripDataset(Dataset):
             leaves the root (absolute or ``..``), a strip whose width is not a multiple of
             ``seq_length``, or strips of different sizes without ``size``.
         InputError: for invalid arguments (an even ``seq_length``, a split that is not a plain name, an
-            unknown camera model, ``roll`` on strips that do not wrap); a ``ValueError`` too.
+            unknown camera model); a ``ValueError`` too.
     """
 
     def __init__(
@@ -118,9 +118,6 @@ class StripDataset(Dataset):
             raise DatasetError(
                 f"{list_path}: strips have different frame sizes {sorted(frame_sizes)}; pass size=(W, H)"
             )
-        check_rollable(
-            augment, ((f"{sub}/{fid}", cam) for (sub, fid, _), cam in zip(self._items, cams, strict=True))
-        )
         self._intr = np.asarray([[float(c.fx), float(c.cx), float(c.fy), float(c.cy)] for c in cams])
         self._sizes = [c.size for c in cams]
 

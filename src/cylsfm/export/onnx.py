@@ -5,7 +5,7 @@ The exported graph takes panoramas at the network's input size and returns depth
     image  float32 [B,3,H,W] in [0, 1]   ->   depth  float32 [B,1,H,W]  (1 / the finest disparity)
 
 The wrap-around padding of every convolution is expressed in standard operators (slices and ``Concat``,
-:func:`cylsfm.geometry.seam.standard_ops`), so any ONNX runtime executes it; the batch size is dynamic.
+:func:`cylsfm.nn.padding.standard_ops`), so any ONNX runtime executes it; the batch size is dynamic.
 :func:`export_depth_onnx` checks the exported model against PyTorch on the same input and reports the
 largest difference.
 """
@@ -23,8 +23,8 @@ from torch import Tensor, nn
 
 from ..errors import CylsfmError
 from ..geometry import CylindricalCamera
-from ..geometry.seam import standard_ops
 from ..model import Predictor, load_models
+from ..nn.padding import standard_ops
 
 __all__ = ["DepthOutput", "OnnxExport", "export_depth_onnx", "export_onnx", "onnx_session"]
 
@@ -65,7 +65,7 @@ def onnx_session(path: str | os.PathLike[str], threads: int | None = None):
 def export_onnx(model: nn.Module, example: Tensor, out: str | os.PathLike[str], opset: int = 18) -> None:
     """Export ``model`` (one image input ``[B,3,H,W]`` -> ``depth``) to ``out`` with a dynamic batch size.
 
-    The wrap padding is traced in standard operators (:func:`~cylsfm.geometry.seam.standard_ops`); the file
+    The wrap padding is traced in standard operators (:func:`~cylsfm.nn.padding.standard_ops`); the file
     is written beside ``out`` and renamed, so a reader never sees half a model.
     """
     try:

@@ -3,34 +3,73 @@
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from ..nn import DispNet, PoseExpNet
+from ..nn import DispNet, PairPoseNet, PoseExpNet, PoseModel
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import ConfigError, TrainConfig, config_from_dict
 
-__all__ = ["LoadedModels", "build_models", "load_models"]
+__all__ = ["LoadedModels", "build_models", "load_models", "upgrade_pose_state"]
 
 
-def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseExpNet]:
-    """The networks of a configuration (freshly initialised)."""
+def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseModel]:
+    """The networks of a configuration (freshly initialised): DispNet, and the pose model composed of the
+    one-pass or the pair network with the head of ``cfg.pose_head`` and, on full panoramas, the compass."""
     n_src = cfg.data.seq_length - 1
     disp = DispNet(wrap=cfg.wrap)
-    pose = PoseExpNet(
-        n_sources=n_src,
-        explainability=cfg.model.explainability,
-        wrap=cfg.wrap,
-        pose_head=cfg.pose_head,  # "auto" resolved by the field of view
-        compass=cfg.model.compass and cfg.wrap,  # the compass reads full panoramas only
-        antisymmetric=cfg.model.antisymmetric,
-        slot_prior=cfg.model.scaffold,
-        pose_level=cfg.model.pose_level,
-        antipodal=cfg.model.pose_antipodal,
-    )
-    return disp, pose
+    if cfg.model.antisymmetric:
+        net: PoseExpNet | PairPoseNet = PairPoseNet(n_src, wrap=cfg.wrap, pose_head=cfg.pose_head)
+    else:
+        net = PoseExpNet(n_src, cfg.model.explainability, wrap=cfg.wrap, pose_head=cfg.pose_head)
+    return disp, PoseModel(net, compass=cfg.model.compass and cfg.wrap)  # the compass reads full panoramas
+
+
+#: State-dict keys of the pose network before it was composed of parts -> today's (without the prefix of
+#: the one-pass network inside the model: ``net.`` or, for the pair network, ``net.pair.``).
+_OLD_POSE_KEYS = (
+    (re.compile(r"^encoder\.(\d+)\.0\.(weight|bias)$"), r"encoder.convs.\1.\2"),
+    (re.compile(r"^pose_pred\.(weight|bias)$"), r"head.conv.\1"),
+    (re.compile(r"^upconvs\.(\d+)\.0\.(weight|bias)$"), r"explain.upconvs.\1.\2"),
+    (re.compile(r"^mask_heads\.(\d+)\.(weight|bias)$"), r"explain.mask_heads.\1.\2"),
+)
+
+
+def upgrade_pose_state(
+    state: dict[str, torch.Tensor], antisymmetric: bool
+) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+    """A pose network's state dict in today's layout, and the training scaffold's slot prior it held.
+
+    Checkpoints written before the pose network was composed of parts (one ``PoseExpNet`` class with
+    keys ``encoder.N.0.*``, ``pose_pred.*``, ``upconvs.*``, ``mask_heads.*`` and the scaffold's
+    ``slot_prior``) are mapped key by key; today's states are returned as they are.
+
+    Args:
+        state: the checkpoint's ``pose_net`` entry.
+        antisymmetric: the run's ``model.antisymmetric`` (the pair network nests the one-pass one).
+
+    Returns:
+        ``(state, slot_prior)``: ``slot_prior`` ``[S,6]`` from an old training checkpoint, else ``None``.
+    """
+    if "pose_pred.weight" not in state:
+        return state, None
+    prefix = "net.pair." if antisymmetric else "net."
+    out: dict[str, torch.Tensor] = {}
+    prior = None
+    for key, value in state.items():
+        if key == "slot_prior":
+            prior = value
+            continue
+        for pattern, new in _OLD_POSE_KEYS:
+            if pattern.match(key):
+                out[prefix + pattern.sub(new, key)] = value
+                break
+        else:
+            out[key] = value  # unknown: the strict load names it
+    return out, prior
 
 
 @dataclass
@@ -38,7 +77,7 @@ class LoadedModels:
     """Networks restored from a checkpoint, in eval mode, with their configuration."""
 
     disp_net: DispNet
-    pose_net: PoseExpNet
+    pose_net: PoseModel
     config: TrainConfig
     step: int
     path: Path
@@ -46,6 +85,9 @@ class LoadedModels:
 
 def load_models(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> LoadedModels:
     """Rebuild the networks of a checkpoint (or run directory) and load their weights.
+
+    Checkpoints of earlier versions load through :func:`upgrade_pose_state`; a training scaffold they
+    carry is not part of the inference networks and is dropped.
 
     Raises:
         CheckpointError: the file is missing, not a cylsfm checkpoint, or its weights do not fit the
@@ -60,7 +102,7 @@ def load_models(path: str | os.PathLike[str], device: str | torch.device = "cpu"
     disp, pose = build_models(cfg)
     try:
         disp.load_state_dict(state["disp_net"])
-        pose.load_state_dict(state["pose_net"])
+        pose.load_state_dict(upgrade_pose_state(state["pose_net"], cfg.model.antisymmetric)[0])
     except (RuntimeError, TypeError) as exc:
         raise CheckpointError(
             f"{p}: weights do not match the networks of its configuration ({exc})"

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -51,11 +51,7 @@ class DataConfig:
     split_name: str = "default"
     fov: float = 360.0  # horizontal field of view kept (centred crop); < 360 turns wrap-around off
     mirror: bool = True
-    mirror_exact: bool = False  # full panoramas mirrored about the principal azimuth (camera unchanged)
     color_jitter: bool = True
-    roll: bool = False  # random yaw rolls of whole samples; only with the equivariant pose head
-    reverse: bool = False  # play half of the samples backwards (the sources swap places)
-    still: float = 0.0  # fraction of samples made a standing camera (sources = target): zero motion
     static_filter: str = "auto"  # auto | poses | image | none
     min_translation: float = 0.05
     min_image_diff: float = 0.01
@@ -75,82 +71,32 @@ class ModelConfig:
     # each column by its azimuth on the whole circle) | "auto" (equivariant on full panoramas, mean on crops)
     pose_head: str = "mean"
     compass: bool = False  # add the visual compass's yaw to the pose (used on full panoramas only)
-    # the pose encoder's level (1-7) that the pose head reads: 7 = the deepest (stride 128, 2 columns at
-    # 256 px wide); 5 = stride 32, 8 columns, each turned by its own azimuth by the equivariant head
-    pose_level: int = 7
-    # each frame read together with its copy turned by half a turn (full panoramas only): a yaw and a
-    # sideways translation move opposite azimuths the same way and opposite ways
-    pose_antipodal: bool = False
     # pose from frame pairs, g(t, s) - g(s, t): no bias, no slot prior once trained
     antisymmetric: bool = False
-    # A scaffold for the antisymmetric pose network: a learned motion per source slot (the prior that
-    # the paper's head learns in its bias) carries the pose alone until step prior_fade_start, then is
-    # blended out linearly until step prior_fade_end, after which the pair network alone carries the
-    # motion. It gives the depth network parallax from the first steps; meanwhile the pair network is
-    # taught the prior's translation (an L1 term of weight prior_distill times the prior's weight), i.e.
-    # to tell the direction of the motion from the two frames. 0 and 0: no scaffold. Used only with
+    # A training scaffold for the antisymmetric pose network (cylsfm.train.scaffold): a learned motion per
+    # source slot (the prior that the paper's head learns in its bias) carries the pose alone until step
+    # prior_fade_start, then is blended out linearly until step prior_fade_end, after which the pair
+    # network alone carries the motion. Meanwhile the pair network is taught the prior's translation (an
+    # L1 term of weight prior_distill times the prior's weight). 0 and 0: no scaffold. Used only with
     # model.antisymmetric (the paper's head has its prior in its bias).
     prior_fade_start: int = 0
     prior_fade_end: int = 0
     prior_distill: float = 1.0
-    # Self-distillation from direct alignment: each training pair is also aligned photometrically
-    # (cylsfm.geometry.align, from the pose network's own pose, with the depth network's depth, no
-    # gradient), and the pose network is pulled towards the aligned pose by an L1 term of this weight
-    # (translation relative to the aligned step's length, rotation matrix entries), from step
-    # align_distill_start on (when the depth is worth aligning with). 0: off.
-    align_distill: float = 0.0
-    align_distill_start: int = 0
-    align_distill_terms: str = (
-        "pose"  # "pose": translation and rotation; "direction": the translation's direction
-    )
 
     def __post_init__(self) -> None:
         if self.pose_head not in ("mean", "equivariant", "auto"):
             raise ConfigError(
                 f"model.pose_head must be 'mean', 'equivariant' or 'auto', got {self.pose_head!r}"
             )
-        if self.prior_fade_end != 0 and not 0 <= self.prior_fade_start <= self.prior_fade_end:
+        if self.prior_fade_start < 0 or self.prior_fade_end < 0 or self.prior_distill < 0:
             raise ConfigError(
-                "model.prior_fade_start and model.prior_fade_end must satisfy 0 <= start <= end, got "
-                f"{self.prior_fade_start} and {self.prior_fade_end}"
+                "model.prior_fade_start, model.prior_fade_end and model.prior_distill must be >= 0"
             )
-        if self.prior_distill < 0:
-            raise ConfigError(f"model.prior_distill must be >= 0, got {self.prior_distill}")
-        if self.align_distill_terms not in ("pose", "direction"):
-            raise ConfigError(
-                f"model.align_distill_terms must be 'pose' or 'direction', got {self.align_distill_terms!r}"
-            )
-        if not 1 <= self.pose_level <= 7:
-            raise ConfigError(f"model.pose_level must be in 1..7, got {self.pose_level}")
-        if self.explainability and self.pose_level < 5:
-            raise ConfigError(
-                "model.explainability reads the pose encoder's level 5: model.pose_level must be >= 5"
-            )
-        if self.align_distill < 0 or self.align_distill_start < 0:
-            raise ConfigError("model.align_distill and model.align_distill_start must be >= 0")
 
     @property
     def scaffold(self) -> bool:
         """Whether the pose network carries a fading slot prior (see ``prior_fade_start``)."""
         return self.antisymmetric and self.prior_fade_end > 0
-
-    def unfinished_fade(self, step: int) -> str | None:
-        """A warning for a run that stops at ``step`` before its scaffold is faded out, else ``None``."""
-        if self.prior_weight_at(step) == 0:
-            return None
-        return (
-            f"training stopped at step {step}, before the slot-prior scaffold was faded out (step "
-            f"{self.prior_fade_end}): the saved pose network, used without the prior, never carried the "
-            "motion alone in training; train longer (or lower model.prior_fade_start/end)"
-        )
-
-    def prior_weight_at(self, step: int) -> float:
-        """The weight of the slot-prior scaffold at training step ``step`` (0-based): 1, a linear fade, 0."""
-        if not self.scaffold or step >= self.prior_fade_end:
-            return 0.0
-        if step < self.prior_fade_start:
-            return 1.0
-        return (self.prior_fade_end - step) / (self.prior_fade_end - self.prior_fade_start)
 
 
 @dataclass
@@ -181,66 +127,36 @@ class TrainConfig:
     image_every: int = 500
     checkpoint_every: int = 2000  # also kept as step_NNNNNNN.pt
     latest_every: int = 200  # latest.pt, overwritten atomically
-    # For the first N steps the photometric term is the paper's plain one: L1 at each scale's own
-    # resolution, summed over the sources, without SSIM, minimum reprojection or auto-masking. Its wide
-    # basin lets the pose network learn turns before the per-pixel selections of the improved loss (which
-    # favour pixels that the current motion already explains) can lock in a motion without rotation.
-    plain_photometric_steps: int = 0
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
             raise ConfigError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.max_steps < 0:
             raise ConfigError(f"max_steps must be >= 0, got {self.max_steps}")
-        if self.plain_photometric_steps < 0:
-            raise ConfigError(f"plain_photometric_steps must be >= 0, got {self.plain_photometric_steps}")
         if self.data.seq_length < 2:
             raise ConfigError(f"data.seq_length must be >= 2, got {self.data.seq_length}")
         if not 0 < self.data.fov <= 360:
             raise ConfigError(f"data.fov must be in (0, 360], got {self.data.fov}")
-        self._check_pose_model()
-        if not 0 <= self.data.still <= 1:
-            raise ConfigError(f"data.still must be in [0, 1], got {self.data.still}")
+        self._check_rules()
 
-    def _check_pose_model(self) -> None:
-        """The pose model's settings against the data's."""
-        if self.model.pose_head == "equivariant" and self.data.fov < 360:
+    def _check_rules(self) -> None:
+        """The rules between settings: the one place they are checked."""
+        m = self.model
+        if m.pose_head == "equivariant" and self.data.fov < 360:
             raise ConfigError(
                 "model.pose_head=equivariant needs full 360-degree panoramas (data.fov = 360); "
                 "'auto' takes the paper's mean head for crops"
             )
-        if self.data.roll and self.pose_head != "equivariant":
-            raise ConfigError(
-                "data.roll (random yaw rolls) needs model.pose_head=equivariant: the paper's averaged pose "
-                "head is invariant to rolls and cannot learn ego-motion from rolled samples"
-            )
-        if self.model.pose_antipodal and (self.data.fov < 360 or not self.model.wrap):
-            raise ConfigError("model.pose_antipodal needs full 360-degree panoramas with wrap-around")
-        if self.data.roll and self.data.fov < 360:
-            raise ConfigError("data.roll needs full 360-degree panoramas (data.fov = 360)")
-        if self.model.antisymmetric and self.model.explainability:
+        if m.antisymmetric and m.explainability:
             raise ConfigError(
                 "model.antisymmetric has no explainability masks: set model.explainability=false, or "
-                "model.antisymmetric=false (--no-antisymmetric) for the paper's one-pass pose network"
+                "model.antisymmetric=false (--no-antisymmetric) for a one-pass pose network"
             )
-        if self.model.scaffold and (self.data.roll or self.data.reverse):
+        if m.prior_fade_end != 0 and m.prior_fade_start > m.prior_fade_end:
             raise ConfigError(
-                "the slot-prior scaffold of the antisymmetric pose network (model.prior_fade_end > 0) needs "
-                "unrolled samples in time order: a motion per slot cannot follow data.roll or data.reverse; "
-                "drop them, set model.prior_fade_end=0, or use --no-antisymmetric"
+                "model.prior_fade_start and model.prior_fade_end must satisfy start <= end, got "
+                f"{m.prior_fade_start} and {m.prior_fade_end}"
             )
-        if self.model.antisymmetric and self.data.still > 0:
-            raise ConfigError(
-                "data.still adds nothing to model.antisymmetric: identical frames give exactly zero motion"
-            )
-
-    def loss_at(self, step: int) -> LossConfig:
-        """The loss configuration of training step ``step`` (0-based): plain photometric during warm-up."""
-        if step < self.plain_photometric_steps:
-            return replace(
-                self.loss, ssim_weight=0.0, min_reprojection=False, automask=False, full_resolution=False
-            )
-        return self.loss
 
     @property
     def pose_head(self) -> str:
@@ -349,6 +265,43 @@ _NESTED = {
 }
 
 
+#: Settings that were measured, not adopted and removed (RESULTS.md, "Rejected options"; the commit
+#: below still has them): ``key -> the value that meant "off"``. A configuration that holds the "off"
+#: value (every run saved before the removal) loads as before; one that turned the option on is refused.
+REMOVED = {
+    "data.mirror_exact": False,
+    "data.roll": False,
+    "data.reverse": False,
+    "data.still": 0.0,
+    "loss.still_weight": None,  # any value: it weighed data.still's term
+    "model.pose_level": 7,
+    "model.pose_antipodal": False,
+    "model.align_distill": 0.0,
+    "model.align_distill_start": None,
+    "model.align_distill_terms": None,
+    "plain_photometric_steps": 0,
+}
+REMOVED_AT = "94a2060"
+
+
+def _drop_removed(data: dict[str, Any], where: str) -> dict[str, Any]:
+    """``data`` without the :data:`REMOVED` settings it holds "off"; one held on is a ``ConfigError``."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    for key, off in REMOVED.items():
+        *section, name = key.split(".")
+        node = out.get(section[0]) if section else out
+        if not isinstance(node, dict) or name not in node:
+            continue
+        value = node.pop(name)
+        if off is not None and value != off:
+            raise ConfigError(
+                f"{where}: {key}={value!r} is an option that was measured, not adopted and removed "
+                f"(RESULTS.md, rejected options; commit {REMOVED_AT} has it): this configuration cannot be "
+                "rebuilt by this version"
+            )
+    return out
+
+
 def config_from_dict(data: dict[str, Any], where: str = "config", saved: bool = False) -> TrainConfig:
     """Rebuild a :class:`TrainConfig`; unknown keys and invalid values are errors naming ``where``.
 
@@ -357,6 +310,8 @@ def config_from_dict(data: dict[str, Any], where: str = "config", saved: bool = 
     it was written: a missing field is one added since, and takes the dataclass default (the setting
     off), so that old runs rebuild the networks they trained, whatever the presets are today.
     """
+    if isinstance(data, dict):
+        data = _drop_removed(data, where)
     if saved and isinstance(data, dict):
         base = TrainConfig(preset=str(data.get("preset", "default")))
     else:

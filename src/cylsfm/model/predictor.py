@@ -64,7 +64,7 @@ class Predictor:
         self.size = (models.config.data.width, models.config.data.height)
         self.fov = models.config.data.fov
         self.wrap = models.config.wrap
-        pairs = bool(getattr(models.pose_net, "antisymmetric", False))
+        pairs = bool(models.pose_net.pairs)
         if pose_iterations is None:
             pose_iterations = DEFAULT_POSE_ITERATIONS if pairs else 0
         if pose_iterations < 0:

@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 from ..errors import check_shape
-from ..geometry.seam import memory_format_of, pad_cat, relu_pad
+from ..geometry.seam import memory_format_of
 from .layers import (
     MIN_HEIGHT,
     MIN_WIDTH,
@@ -18,6 +18,7 @@ from .layers import (
     init_weights,
     wrap_upsample2x,
 )
+from .padding import pad_cat, relu_pad
 
 __all__ = ["MIN_HEIGHT", "MIN_WIDTH", "TOTAL_STRIDE", "DispNet", "check_input_size"]  # size rules: .layers
 

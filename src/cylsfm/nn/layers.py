@@ -18,7 +18,8 @@ import torch
 from torch import nn
 
 from ..errors import InputError
-from ..geometry.seam import circular_pad, pad_cat, relu_pad, resize_image
+from ..geometry.seam import resize_image
+from .padding import circular_pad, pad_cat, relu_pad
 from .small_maps import conv2d_rows_padded, conv_transpose2d_small
 
 __all__ = [

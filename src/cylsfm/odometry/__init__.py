@@ -27,7 +27,8 @@ Files in ``OUT``::
     depth/FRAME.npy          with depth maps asked for: each frame's depth (the view the network sees)
     .odometry-state.npz      progress: a killed run given the same arguments continues from it
 
-The module is callable: ``cylsfm.odometry(INPUT, checkpoint=..., out=...)`` is :func:`odometry`.
+The module is callable: ``cylsfm.odometry(INPUT, CHECKPOINT, OUT, OdometrySettings(refine=True))`` is
+:func:`odometry`.
 """
 
 import sys
@@ -37,11 +38,13 @@ from ..geometry.align import AlignConfig, AlignResult, align
 from ..geometry.ground import ground_height, metric_scale
 from .frames import Ride, open_ride
 from .run import OdometryResult, odometry
+from .settings import OdometrySettings
 
 __all__ = [
     "AlignConfig",
     "AlignResult",
     "OdometryResult",
+    "OdometrySettings",
     "Ride",
     "align",
     "ground_height",

@@ -15,24 +15,25 @@ from typing import Any
 import numpy as np
 import torch
 
-from .. import __version__
+from .._version import __version__
 from ..atomic import atomic_write_text
 from ..data.format import load_depth, save_depth
 from ..data.io import write_tum
 from ..errors import CylsfmError, InputError
 from ..evaluate.pose_metrics import chain_poses
 from ..geometry import Camera, load_camera
-from ..geometry.align import AlignConfig, resize_depth
+from ..geometry.align import resize_depth
 from ..geometry.ground import metric_scale
 from ..model import Predictor
 from ..model.plan import model_vfov_h, network_images, plan_input
 from ..runtime import fingerprint, progress_bar
 from .frames import Ride, depth_files, open_ride
 from .report import ride_metrics, top_view
+from .settings import OdometrySettings
 from .state import STATE_FILE, State
-from .track import MOUNT_AGREEMENT, Tracker, keyframe_steps, network_size
+from .track import MOUNT_AGREEMENT, Tracker, TrackOptions, keyframe_steps, network_size
 
-__all__ = ["OdometryResult", "odometry"]
+__all__ = ["OdometryResult", "OdometrySettings", "odometry"]
 
 #: Frames read and processed between two saves of the state.
 CHUNK = 32
@@ -63,39 +64,11 @@ class OdometryResult:
     seconds: float = 0.0
 
 
-def _checked(
-    refine: bool, camera_height: float | None, batch_size: int, depth_from: Any, every: int, mount: Any
-) -> None:
-    if every < 1:
-        raise InputError(f"keyframe_every must be at least 1, got {every}")
-    if not (mount == "auto" or (isinstance(mount, int | float) and math.isfinite(mount))):
-        raise InputError(f"mount_yaw must be 'auto' or an azimuth in degrees, got {mount!r}")
-    if batch_size < 1:
-        raise InputError(f"batch_size must be at least 1, got {batch_size}")
-    if camera_height is not None and not (math.isfinite(camera_height) and camera_height > 0):
-        raise InputError(f"camera_height must be a positive number of metres, got {camera_height}")
-    if depth_from is not None and not refine:
-        raise InputError("depth_from gives the refinement its depth: it needs refine=True (--refine)")
-
-
 def odometry(
     input: str | os.PathLike[str],
     checkpoint: str | os.PathLike[str] | Predictor,
     out: str | os.PathLike[str],
-    camera: str | os.PathLike[str] | Camera | None = None,
-    refine: bool = False,
-    depth_from: str | os.PathLike[str] | None = None,
-    camera_height: float | None = None,
-    save_depth_maps: bool = False,
-    fps: float | None = None,
-    stride: int = 1,
-    keyframe_every: int = 1,
-    mount_yaw: float | str = "auto",
-    batch_size: int = 8,
-    device: str = "auto",
-    align_config: AlignConfig | None = None,
-    progress: bool = True,
-    pose_iterations: int | None = None,
+    settings: OdometrySettings | None = None,
 ) -> OdometryResult:
     """The trajectory of a whole ride: the pose network's steps chained, optionally refined by direct
     photometric alignment; see :mod:`cylsfm.odometry` for the method and the files written.
@@ -104,60 +77,54 @@ def odometry(
         input: a video file, a folder of frames, or a dataset sequence directory.
         checkpoint: a checkpoint file, a run directory or a ready predictor.
         out: the output directory (created; a killed run in it is continued).
-        camera: the frames' camera (``camera.json`` or a camera); ``None``: the sequence's own, or full
-            cylindrical panoramas of the model's aspect ratio.
-        refine: refine every step by direct alignment; ``depth_from``: a dataset whose ground-truth
-            depth the refinement uses instead of the network's.
-        camera_height: the camera's height above the ground in metres: scale the result to metres.
-        save_depth_maps: write each frame's depth to ``OUT/depth/FRAME.npy``; ``fps``: take about this
-            many frames a second from a video; ``stride``: every n-th frame.
-        keyframe_every: with ``refine``, align each frame to a keyframe, a new one every this many
-            frames (1: each frame to the one before); the error then adds up once per keyframe.
-        mount_yaw: the azimuth in degrees of the direction of travel in the panorama (0: straight ahead, 90:
-            to the right, a camera mounted turned left), or ``"auto"``: found from the first frames
-            (:func:`~cylsfm.odometry.mount.mount_yaw`). The pose network reads the frames turned so that
-            the camera faces its motion (full-panorama models; crops are read as they are).
-        batch_size: windows and pairs per call; ``device``: ``auto``, ``cpu``, ``cuda``, ``cuda:N``.
-        align_config: the refinement's settings; ``progress``: show a progress bar; ``pose_iterations``:
-            :class:`~cylsfm.model.Predictor`'s (``None``: the model's default; not with a predictor).
+        settings: what to read and compute (:class:`OdometrySettings`; default: its defaults).
 
     Raises:
         CylsfmError: an input, camera, checkpoint or dataset problem, naming the file.
     """
     started = time.perf_counter()
-    _checked(refine, camera_height, batch_size, depth_from, keyframe_every, mount_yaw)
-    ride = open_ride(input, fps, stride)
-    predictor, plan = _model_and_plan(ride, checkpoint, device, pose_iterations, camera)
+    opt = settings or OdometrySettings()
+    ride = open_ride(input, opt.fps, opt.stride)
+    predictor, plan = _model_and_plan(ride, checkpoint, opt.device, opt.pose_iterations, opt.camera)
     net_cam = plan.network_input.resized(*predictor.size)
-    config = align_config or AlignConfig()
-    depths = _true_depth_files(depth_from, ride, plan)
-    turnable = _turnable(predictor, mount_yaw)
-    options = {
-        "refine": refine,
-        "fps": fps,
-        "stride": stride,
-        "keyframe_every": keyframe_every,
-        "mount_yaw": mount_yaw,
+    depths = _true_depth_files(opt.depth_from, ride, plan)
+    turnable = _turnable(predictor, opt.mount_yaw)
+    fixed = {
+        "refine": opt.refine,
+        "fps": opt.fps,
+        "stride": opt.stride,
+        "keyframe_every": opt.keyframe_every,
+        "mount_yaw": opt.mount_yaw,
         "pose_iterations": predictor.pose_iterations,
-        "ground_fit": camera_height is not None,  # the depth of every frame is needed for it
+        "ground_fit": opt.camera_height is not None,  # the depth of every frame is needed for it
     }
-    depth_scale = camera_height if save_depth_maps else None
-    settings = _settings(ride, checkpoint, plan, config, depth_from, options, save_depth_maps, depth_scale)
+    run_settings = _settings(ride, checkpoint, plan, opt, fixed)
     (dest := Path(out)).mkdir(parents=True, exist_ok=True)
-    state = State.load(dest / STATE_FILE, fingerprint(settings)) or State(fingerprint(settings))
-    if mount_yaw != "auto" and turnable:  # given: known from the start
-        state.mount = (math.radians(float(mount_yaw)), float("nan"), 0)
+    state = State.load(dest / STATE_FILE, fingerprint(run_settings)) or State(fingerprint(run_settings))
+    if not opt.find_mount and turnable:  # given: known from the start
+        state.mount = (math.radians(float(opt.mount_yaw)), float("nan"), 0)
     depth_of = _depth_reader(depths, predictor, net_cam) if depths is not None else None
-    writer = (
-        _depth_writer(dest / (RAW_DEPTH if camera_height else "depth"), state) if save_depth_maps else None
-    )
-    find, need = mount_yaw == "auto" and turnable, camera_height is not None
+    writer = None
+    if opt.save_depth_maps:
+        writer = _depth_writer(dest / (RAW_DEPTH if opt.camera_height else "depth"), state)
     tracker = Tracker(
-        predictor, net_cam, state, refine, config, batch_size, keyframe_every, depth_of, writer, need, find
+        predictor,
+        net_cam,
+        state,
+        TrackOptions(
+            refine=opt.refine,
+            align=opt.align,
+            batch_size=opt.batch_size,
+            keyframe_every=opt.keyframe_every,
+            need_depth=opt.camera_height is not None,
+            find_mount=opt.find_mount and turnable,
+        ),
+        depth_of=depth_of,
+        on_depth=writer,
     )
     if not state.finished:
-        _track(ride, plan, predictor, tracker, state, dest, progress)
-    return _finish(ride, state, dest, tracker, camera_height, save_depth_maps, refine, depths, started)
+        _track(ride, plan, predictor, tracker, state, dest, opt.progress)
+    return _finish(ride, state, dest, tracker, opt, depths, started)
 
 
 def _true_depth_files(depth_from: Any, ride: Ride, plan: Any) -> list[Path] | None:
@@ -193,14 +160,7 @@ def _model_and_plan(
 
 
 def _settings(
-    ride: Ride,
-    checkpoint: Any,
-    plan: Any,
-    config: AlignConfig,
-    depth_from: Any,
-    options: dict[str, Any],
-    depth_maps: bool,
-    depth_scale: float | None,
+    ride: Ride, checkpoint: Any, plan: Any, opt: OdometrySettings, fixed: dict[str, Any]
 ) -> dict[str, Any]:
     """What decides a run's result: a saved state with other settings is not continued. (Depth maps are
     written in network units, or kept apart until the scale to metres is known: so that scale counts.)"""
@@ -208,11 +168,11 @@ def _settings(
         "input": str(Path(ride.path).resolve()),
         "checkpoint": _checkpoint_id(checkpoint),
         "camera": plan.network_input.to_dict(),
-        "depth_from": str(Path(depth_from).resolve()) if depth_from is not None else None,
-        **options,
-        "depth_maps": depth_maps,
-        "depth_scale": depth_scale,
-        "align": asdict(config),
+        "depth_from": str(Path(opt.depth_from).resolve()) if opt.depth_from is not None else None,
+        **fixed,
+        "depth_maps": opt.save_depth_maps,
+        "depth_scale": opt.camera_height if opt.save_depth_maps else None,
+        "align": asdict(opt.align),
         "version": __version__,
     }
 
@@ -312,13 +272,12 @@ def _finish(
     state: State,
     dest: Path,
     tracker: Tracker,
-    camera_height: float | None,
-    save_depth_maps: bool,
-    refine: bool,
+    opt: OdometrySettings,
     depths: list[Path] | None,
     started: float,
 ) -> OdometryResult:
     """Scale, chain, and write the trajectory, the plot, the measures and the summary."""
+    camera_height, refine = opt.camera_height, opt.refine
     refined = keyframe_steps(np.stack(state.refined), tracker.every) if refine else None
     steps = refined if refined is not None else np.stack(state.net)
     unit, scale = ("metres (ground-truth depth)", None) if depths is not None else ("network units", None)
@@ -331,7 +290,7 @@ def _finish(
             f"unit: metres (camera height {camera_height:g} m over the ground fitted in {used} frames: "
             f"{scale:.6g} m per network unit)"
         )
-        if save_depth_maps:
+        if opt.save_depth_maps:
             _scaled_depth(dest, state, scale)
     else:
         comments.append(
@@ -352,13 +311,13 @@ def _finish(
             chain_poses(np.stack(state.net)),
             ["the pose network alone"],
         )
-    metrics, gt = _measure(ride, state, refined)
+    measured = _measure(ride, state, refined)
     top_view(
         dest / "trajectory.png",
         c2w,
         "m" if scale or depths is not None else "network units",
-        gt,
-        metrics[1] if metrics else {},
+        measured.truth if measured else None,
+        measured.curves if measured else {},
     )
     seconds = time.perf_counter() - started
     summary = {
@@ -374,18 +333,18 @@ def _finish(
         "direction_of_travel": _mount_summary(state),
     }
     atomic_write_text(dest / "odometry.json", json.dumps(summary, indent=2) + "\n")
-    if metrics:
-        atomic_write_text(dest / "metrics.json", json.dumps(metrics[0], indent=2) + "\n")
+    if measured:
+        atomic_write_text(dest / "metrics.json", json.dumps(measured.metrics, indent=2) + "\n")
     return OdometryResult(
-        dest / "trajectory.txt",
-        c2w,
-        times,
-        list(state.stems),
-        unit,
-        scale,
-        metrics[0] if metrics else None,
-        tracker.times.parts,
-        seconds,
+        trajectory=dest / "trajectory.txt",
+        c2w=c2w,
+        times=times,
+        frames=list(state.stems),
+        unit=unit,
+        metres_per_unit=scale,
+        metrics=measured.metrics if measured else None,
+        timings=tracker.times.parts,
+        seconds=seconds,
     )
 
 
@@ -418,19 +377,30 @@ def _refine_stats(state: State) -> dict[str, float]:
     }
 
 
-def _measure(ride: Ride, state: State, refined: np.ndarray | None):
+@dataclass
+class _Measured:
+    """The measures against the ground truth (as ``metrics.json``), the aligned curves for the top view
+    and the true camera-to-world poses ``[M,4,4]``."""
+
+    metrics: dict[str, Any]
+    curves: dict[str, Any]
+    truth: np.ndarray
+
+
+def _measure(ride: Ride, state: State, refined: np.ndarray | None) -> _Measured | None:
     truth = ride.ground_truth()
     if truth is None:
-        return None, None
+        return None
     times, gt = truth
     if len(gt) != len(state.stems):
-        return None, None
+        return None
     steps = {
         "refined": refined,
         "network": np.stack(state.net),
         "compass": np.stack(state.compass),
     }
-    return ride_metrics(times, gt, steps), gt
+    metrics, curves = ride_metrics(times, gt, steps)
+    return _Measured(metrics, curves, gt)
 
 
 def _scaled_depth(dest: Path, state: State, scale: float) -> None:

@@ -26,7 +26,7 @@ from ..model import Predictor
 from .mount import mount_yaw
 from .state import State
 
-__all__ = ["Timings", "Tracker"]
+__all__ = ["Timings", "TrackOptions", "Tracker"]
 
 #: The direction of travel found is used when at least this weighted fraction of the pairs agree with it.
 MOUNT_AGREEMENT = 0.5
@@ -46,6 +46,30 @@ class Timings:
         return now
 
 
+@dataclass(frozen=True)
+class TrackOptions:
+    """What the :class:`Tracker` computes.
+
+    Attributes:
+        refine: refine each step by :func:`~cylsfm.geometry.align.align`, with ``align``'s settings.
+        batch_size: windows / pairs per call.
+        keyframe_every: refine each frame against a keyframe, a new one every this many frames (1: each
+            frame against the one before).
+        need_depth: predict every frame's depth (and fit the ground) even when nothing else needs it: for
+            the metric scale. Without it, refinement or depth files, the pose network runs alone.
+        find_mount: find the direction of travel in the panorama (:func:`~cylsfm.odometry.mount.mount_yaw`)
+            from the first chunk, unless the state knows it; the pose network then reads every window turned
+            so that the camera faces its motion (full panoramas only).
+    """
+
+    refine: bool = False
+    align: AlignConfig = field(default_factory=AlignConfig)
+    batch_size: int = 8
+    keyframe_every: int = 1
+    need_depth: bool = True
+    find_mount: bool = False
+
+
 class Tracker:
     """Depth, windows, steps and refinement over a stream of frames.
 
@@ -53,19 +77,10 @@ class Tracker:
         predictor: the networks.
         camera: the camera of the network-size frames given to :meth:`push` (``predictor.size``).
         state: where the results go (a new or a loaded state).
-        refine: refine each step by :func:`~cylsfm.geometry.align.align`.
-        align_config: its settings.
-        batch_size: windows / pairs per call.
-        keyframe_every: refine each frame against a keyframe, a new one every this many frames (1: each
-            frame against the one before).
+        options: what to compute.
         depth_of: ground-truth depth for frames by index (``[1,h,w]`` at the view's size), or ``None``
             for the network's depth.
         on_depth: called with each chunk's indices and view depths (to write depth files).
-        need_depth: predict every frame's depth (and fit the ground) even when nothing above needs it: for
-            the metric scale. Without it, refinement or depth files, the pose network runs alone.
-        find_mount: find the direction of travel in the panorama (:func:`~cylsfm.odometry.mount.mount_yaw`)
-            from the first chunk, unless the state knows it; the pose network then reads every window turned
-            so that the camera faces its motion (full panoramas only).
     """
 
     def __init__(
@@ -73,28 +88,23 @@ class Tracker:
         predictor: Predictor,
         camera: Camera,
         state: State,
-        refine: bool,
-        align_config: AlignConfig,
-        batch_size: int,
-        keyframe_every: int = 1,
+        options: TrackOptions,
         depth_of: Callable[[int], Tensor] | None = None,
         on_depth: DepthSink | None = None,
-        need_depth: bool = True,
-        find_mount: bool = False,
     ) -> None:
         self.p = predictor
         self.camera = camera
         self.view = predictor.network_camera(camera)
         self.window = predictor.window(camera)
         self.state = state
-        self.refine = refine
-        self.align_config = align_config
-        self.batch = batch_size
-        self.every = keyframe_every
-        self.need_depth = need_depth or refine or on_depth is not None
+        self.refine = options.refine
+        self.align_config = options.align
+        self.batch = options.batch_size
+        self.every = options.keyframe_every
+        self.need_depth = options.need_depth or options.refine or on_depth is not None
         self.depth_of = depth_of
         self.on_depth = on_depth
-        self.find_mount = find_mount and self.view.wraps
+        self.find_mount = options.find_mount and self.view.wraps
         self.k = (int(predictor.config.data.seq_length) - 1) // 2
         self.times = Timings()
         self.images: dict[int, Tensor] = {}

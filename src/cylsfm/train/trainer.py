@@ -20,6 +20,7 @@ import os
 import random
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -33,35 +34,21 @@ from ..data.dataset import AugmentConfig, SequenceDataset, StaticFilter, camera_
 from ..data.format import load_mask
 from ..data.strips import StripDataset, is_strip_dataset
 from ..errors import CylsfmError
-from ..geometry import Camera, pose_vec_to_mat
-from ..losses import alignment_distillation, image_pyramid, standing_still_loss, view_synthesis_loss
-from ..model.build import build_models
+from ..model.build import build_models, upgrade_pose_state
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.config import TrainConfig, config_from_dict, config_to_dict, resumed_config, save_config
 from ..runtime import prefers_channels_last, progress_bar
 from .distributed import init_distributed
+from .objective import Objective, SfMNet, batch_on
 from .rng import restore_rng, rng_state
 from .sampler import ResumableSampler, SeededDataset
+from .scaffold import SlotPriorScaffold
 
 __all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "train"]
 
 
 class NonFiniteLossError(CylsfmError):
     """The loss became NaN or infinite; the last good checkpoint is kept."""
-
-
-class SfMNet(nn.Module):
-    """Both networks in one module (one DistributedDataParallel wrapper, one optimiser)."""
-
-    def __init__(self, disp_net: nn.Module, pose_net: nn.Module) -> None:
-        super().__init__()
-        self.disp_net = disp_net
-        self.pose_net = pose_net
-
-    def forward(self, target: Tensor, sources: Tensor) -> tuple[list[Tensor], Tensor, list[Tensor] | None]:
-        disps = self.disp_net(target)
-        pose_vec, masks = self.pose_net(target, sources)
-        return disps, pose_vec, masks
 
 
 class Trainer:
@@ -91,13 +78,22 @@ class Trainer:
             )
         self.static_mask = self._load_static_mask()
         if cfg.data.vfov_h is None:  # what the network will expect of panoramas given to it later
-            cam = camera_of(self.dataset[0])
-            if cam.model == "cylindrical":
-                cfg.data.vfov_h = round((float(cam.cy) + 0.5) / float(cam.fy), 6)
+            cfg = self.cfg = replace(cfg, data=replace(cfg.data, vfov_h=self._vfov_h()))
 
-        # ---- networks and optimiser
+        # ---- networks, the scaffold, the objective and the optimiser
         disp_net, pose_net = build_models(cfg)
-        self.model = SfMNet(disp_net, pose_net).to(self.device)
+        self.scaffold = (
+            SlotPriorScaffold(
+                cfg.data.seq_length - 1,
+                cfg.model.prior_fade_start,
+                cfg.model.prior_fade_end,
+                cfg.model.prior_distill,
+            )
+            if cfg.model.scaffold
+            else None
+        )
+        self.model = SfMNet(disp_net, self.scaffold, pose_net).to(self.device)
+        self.objective = Objective(cfg.loss, cfg.wrap)
         self.channels_last = (
             prefers_channels_last(self.device) if cfg.channels_last is None else bool(cfg.channels_last)
         )
@@ -133,14 +129,7 @@ class Trainer:
         """The training samples: dataset format v1, or the strips prepared for the original SfMLearner code
         (a root with ``train.txt`` and no ``camera.json`` sequences; cylindrical intrinsics in ``cam.txt``)."""
         d = self.cfg.data
-        augment = AugmentConfig(
-            mirror=d.mirror,
-            mirror_exact=d.mirror_exact,
-            color_jitter=d.color_jitter,
-            roll=d.roll,
-            reverse=d.reverse,
-            still=d.still,
-        )
+        augment = AugmentConfig(mirror=d.mirror, color_jitter=d.color_jitter)
         root = Path(d.root)
         if is_strip_dataset(root):
             split = d.split or "train"
@@ -157,6 +146,14 @@ class Trainer:
             load_ground_truth=False,  # self-supervised: depth and poses are never read
             cache=d.cache,
         )
+
+    def _vfov_h(self) -> float | None:
+        """The vertical extent ``h`` in ``[-vfov_h, vfov_h]`` of the training panoramas (``None``: not
+        cylindrical), recorded so that images given to the network later are fitted to it."""
+        cam = camera_of(self.dataset[0])
+        if cam.model != "cylindrical":
+            return None
+        return round((float(cam.cy) + 0.5) / float(cam.fy), 6)
 
     def _check_size(self) -> None:
         from ..geometry import CylindricalCamera
@@ -206,75 +203,14 @@ class Trainer:
         )
 
     # ------------------------------------------------------------------ one step
-    def _crop(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Camera, Tensor | None]:
-        """Images on the device (cropped to the field of view), their camera and the static mask."""
-        tgt = batch["target"].to(self.device, non_blocking=True)
-        src = batch["sources"].to(self.device, non_blocking=True)
-        cam = camera_of(batch)
-        mask = self.static_mask
-        if "mask" in batch:
-            m = batch["mask"].to(self.device)
-            mask = m if mask is None else mask * m
-        if self.cfg.data.fov < 360:
-            x0, x1 = cam.index(0).crop_window(self.cfg.data.fov)
-            cam = cam.crop(self.cfg.data.fov)
-            tgt, src = tgt[..., x0:x1], src[..., x0:x1]
-            mask = mask[..., x0:x1] if mask is not None else None
-        if self.channels_last:
-            tgt = tgt.contiguous(memory_format=torch.channels_last)
-        return tgt, src, cam, mask
-
-    def compute_loss(self, batch: dict[str, Any]) -> tuple[Tensor, dict[str, Tensor], dict[str, Tensor]]:
-        tgt, src, cam, mask = self._crop(batch)
-        self.model.pose_net.prior_weight = self.cfg.model.prior_weight_at(self.step)
+    def compute_loss(self, sample: dict[str, Any]) -> tuple[Tensor, dict[str, Tensor], dict[str, Any]]:
+        """The networks on one loader batch and every loss term (see :mod:`cylsfm.train.objective`)."""
+        batch = batch_on(sample, self.device, self.static_mask, self.cfg.data.fov, self.channels_last)
         with torch.autocast(
             self.device.type, dtype=self.amp_dtype or torch.float32, enabled=self.amp_dtype is not None
         ):
-            disps, pose_vec, masks = self.net(tgt, src)
-        loss_cfg = self.cfg.loss_at(self.step)
-        disps = [d.float() for d in disps]
-        masks = [m.float() for m in masks] if masks is not None and loss_cfg.explain_weight > 0 else None
-        poses = pose_vec_to_mat(pose_vec.float())
-        sizes = [tuple(d.shape[-2:]) for d in disps]
-        photo_sizes = [tuple(tgt.shape[-2:])] * len(sizes) if loss_cfg.full_resolution else sizes
-        tgt32 = tgt.float().contiguous()
-        out = view_synthesis_loss(
-            tgt32,
-            src.float(),
-            disps,
-            poses,
-            cam,
-            loss_cfg,
-            explainability=masks,
-            static_mask=mask,
-            wrap=self.cfg.wrap,
-            target_pyramid=image_pyramid(tgt32, sizes),
-            source_pyramid=image_pyramid(src.float(), photo_sizes),
-        )
-        extra: dict[str, Tensor] = {}
-        pose_net = self.model.pose_net
-        if self.cfg.model.scaffold and pose_net.scaffold_gap is not None:  # the pair net learns the prior's t
-            weight = self.cfg.model.prior_distill * pose_net.prior_weight
-            extra["scaffold"] = weight * pose_net.scaffold_gap.float().abs().mean()
-            pose_net.scaffold_gap = None  # the graph is the loss's alone
-        weight = self.cfg.model.align_distill
-        if weight > 0 and self.step >= self.cfg.model.align_distill_start:
-            parts = self.cfg.model.align_distill_terms
-            extra["align"] = weight * alignment_distillation(tgt32, src.float(), disps[0], poses, cam, parts)
-        if self.cfg.data.still > 0:  # samples of a standing camera: sources identical to the target
-            still = (src == tgt[:, None]).flatten(1).all(1)
-            extra["still"] = loss_cfg.still_weight * standing_still_loss(pose_vec.float(), still)
-        total = out.total + sum(extra.values())
-        terms = {**out.terms, **extra, "total": total}
-        visuals = {
-            "target": tgt32[:1].detach(),
-            "warped": out.warped[:1] if out.warped is not None else None,
-            "error": out.error[:1] if out.error is not None else None,
-            "disparity": disps[0][:1].detach(),
-            "explainability": masks[0][:1].detach() if masks is not None else None,
-            "translation_norm": poses[:, :, :3, 3].norm(dim=-1).mean().detach(),
-        }
-        return total, terms, visuals
+            outputs = self.net(batch.target, batch.sources, self.step)
+        return self.objective(batch, outputs)
 
     def train_step(self, batch: dict[str, Any]) -> tuple[dict[str, float], dict[str, Tensor]]:
         self.net.train()
@@ -292,8 +228,8 @@ class Trainer:
         self.step += 1
         scalars = {k: float(v.detach()) for k, v in terms.items()}
         scalars["translation_norm"] = float(visuals.pop("translation_norm"))
-        if self.cfg.model.scaffold:
-            scalars["prior_weight"] = float(self.model.pose_net.prior_weight)
+        if self.scaffold is not None:
+            scalars["prior_weight"] = self.scaffold.weight_at(self.step - 1)
         return scalars, visuals
 
     # ------------------------------------------------------------------ checkpoints
@@ -303,6 +239,7 @@ class Trainer:
             "step": self.step,
             "disp_net": self.model.disp_net.state_dict(),
             "pose_net": self.model.pose_net.state_dict(),
+            **({"scaffold": self.scaffold.state_dict()} if self.scaffold is not None else {}),
             "optimizer": self.optimizer.state_dict(),
             "scaler": self.scaler.state_dict(),
             "rng": rng_state(),
@@ -311,7 +248,13 @@ class Trainer:
 
     def _restore(self, state: dict[str, Any]) -> None:
         self.model.disp_net.load_state_dict(state["disp_net"])
-        self.model.pose_net.load_state_dict(state["pose_net"])
+        pose, prior = upgrade_pose_state(state["pose_net"], self.cfg.model.antisymmetric)
+        self.model.pose_net.load_state_dict(pose)
+        if self.scaffold is not None:  # a training checkpoint of an earlier version kept it in the network
+            scaffold = state.get("scaffold") or ({"slot_prior": prior} if prior is not None else None)
+            if scaffold is None:
+                raise CylsfmError(f"{self.run_dir}: the checkpoint has no state of its run's scaffold")
+            self.scaffold.load_state_dict(scaffold)
         if "optimizer" in state:
             self.optimizer.load_state_dict(state["optimizer"])
         if state.get("scaler"):
@@ -393,7 +336,8 @@ class Trainer:
             self.save(keep=False)
         if self.writer:
             self.writer.flush()
-        if (note := cfg.model.unfinished_fade(self.step)) and self.dist.main:
+        note = self.scaffold.unfinished(self.step) if self.scaffold is not None else None
+        if note and self.dist.main:
             warnings.warn(note, UserWarning, stacklevel=2)
         return {
             "steps": self.step,

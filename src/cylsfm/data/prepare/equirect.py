@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from ... import __version__
+from ..._version import __version__
 from ...errors import CylsfmError, InputError
 from ...geometry import Camera, CylindricalCamera, EquirectangularCamera
 from ...runtime import progress_bar

@@ -1,0 +1,129 @@
+"""The training objective: a batch and the networks' outputs -> every loss term, by name.
+
+Read top-down as monodepth2's ``process_batch -> compute_losses``: :func:`batch_on` puts a loader's batch on
+the device as a typed :class:`Batch` (images cropped to the field of view, their camera, the pixels to use);
+:class:`SfMNet` runs the networks (and, in training, the pair network's scaffold); :class:`Objective`
+turns both into the loss terms of :func:`cylsfm.losses.view_synthesis_loss` plus the scaffold's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ..data.dataset import camera_of
+from ..geometry import Camera, pose_vec_to_mat
+from ..losses import LossConfig, view_synthesis_loss
+from ..nn import DispNet, PoseModel
+from .scaffold import SlotPriorScaffold
+
+__all__ = ["Batch", "Objective", "Outputs", "SfMNet", "batch_on"]
+
+
+@dataclass
+class Batch:
+    """One training batch on the device.
+
+    Attributes:
+        target: ``[B,3,H,W]`` in ``[0, 1]``; ``sources``: ``[B,S,3,H,W]``.
+        camera: the images' camera (batched intrinsics).
+        mask: ``[B,1,H,W]`` or ``[1,1,H,W]`` weights of the pixels to use, or ``None`` (all).
+    """
+
+    target: Tensor
+    sources: Tensor
+    camera: Camera
+    mask: Tensor | None
+
+
+def batch_on(
+    sample: dict[str, Any], device: torch.device, static_mask: Tensor | None, fov: float, channels_last: bool
+) -> Batch:
+    """A loader's collated ``sample`` on ``device``, cropped to the centred ``fov`` degrees, with the
+    ``static_mask`` ``[1,1,H,W]`` times the samples' own masks."""
+    tgt = sample["target"].to(device, non_blocking=True)
+    src = sample["sources"].to(device, non_blocking=True)
+    cam = camera_of(sample)
+    mask = static_mask
+    if "mask" in sample:
+        m = sample["mask"].to(device)
+        mask = m if mask is None else mask * m
+    if fov < 360:
+        x0, x1 = cam.index(0).crop_window(fov)
+        cam = cam.crop(fov)
+        tgt, src = tgt[..., x0:x1], src[..., x0:x1]
+        mask = mask[..., x0:x1] if mask is not None else None
+    if channels_last:
+        tgt = tgt.contiguous(memory_format=torch.channels_last)
+    return Batch(tgt, src, cam, mask)
+
+
+#: ``(disparities per scale [B,1,H_s,W_s], pose [B,S,6], masks or None, scaffold terms)``.
+Outputs = tuple[list[Tensor], Tensor, list[Tensor] | None, dict[str, Tensor]]
+
+
+class SfMNet(nn.Module):
+    """Both networks and the training scaffold in one module (one DistributedDataParallel wrapper, one
+    optimiser). The scaffold, when there is one, acts on the pair network's poses before the compass's yaw
+    is added."""
+
+    def __init__(self, disp_net: DispNet, scaffold: SlotPriorScaffold | None, pose_net: PoseModel) -> None:
+        super().__init__()
+        self.disp_net = disp_net
+        self.scaffold = scaffold  # registered between the two: the parameters' order of earlier versions
+        self.pose_net = pose_net
+
+    def forward(self, target: Tensor, sources: Tensor, step: int) -> Outputs:
+        disps = self.disp_net(target)
+        pose, masks = self.pose_net.net(target, sources)
+        terms: dict[str, Tensor] = {}
+        if self.scaffold is not None:
+            pose, terms = self.scaffold(pose, step)
+        return disps, self.pose_net.with_compass(pose, target, sources), masks, terms
+
+
+class Objective:
+    """The loss of one step: view synthesis (every term of :class:`~cylsfm.losses.LossConfig`) plus the
+    networks' own training terms.
+
+    Args:
+        config: the view-synthesis loss's weights and variants.
+        wrap: across the seam (full panoramas).
+    """
+
+    def __init__(self, config: LossConfig, wrap: bool) -> None:
+        self.config, self.wrap = config, wrap
+
+    def __call__(self, batch: Batch, outputs: Outputs) -> tuple[Tensor, dict[str, Tensor], dict[str, Any]]:
+        """``(total, terms by name (with "total"), pictures and numbers for the logs)``."""
+        disps, pose_vec, masks, extra = outputs
+        cfg = self.config
+        disps = [d.float() for d in disps]
+        masks = [m.float() for m in masks] if masks is not None and cfg.explain_weight > 0 else None
+        poses = pose_vec_to_mat(pose_vec.float())
+        target = batch.target.float().contiguous()
+        out = view_synthesis_loss(
+            target,
+            batch.sources.float(),
+            disps,
+            poses,
+            batch.camera,
+            cfg,
+            explainability=masks,
+            static_mask=batch.mask,
+            wrap=self.wrap,
+        )
+        total = out.total + sum(extra.values())
+        terms = {**out.terms, **extra, "total": total}
+        visuals = {
+            "target": target[:1].detach(),
+            "warped": out.warped[:1] if out.warped is not None else None,
+            "error": out.error[:1] if out.error is not None else None,
+            "disparity": disps[0][:1].detach(),
+            "explainability": masks[0][:1].detach() if masks is not None else None,
+            "translation_norm": poses[:, :, :3, 3].norm(dim=-1).mean().detach(),
+        }
+        return total, terms, visuals

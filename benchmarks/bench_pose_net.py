@@ -51,7 +51,6 @@ def main() -> None:
         cfg = apply_overrides(preset("default"), [f"data.width={width}", f"data.height={height}", *overrides])
         _, pose = build_models(cfg)
         pose.train()
-        pose.prior_weight = 0.5  # the scaffold's blend, as during its fade
         times = []
         for i in range(args.reps + 2):
             t0 = time.perf_counter()

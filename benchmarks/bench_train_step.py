@@ -71,7 +71,7 @@ def train_step_bench(
     from torch.utils.flop_counter import FlopCounterMode
 
     from cylsfm.geometry import CylindricalCamera, PinholeCamera, pose_vec_to_mat
-    from cylsfm.losses import LossConfig, image_pyramid, view_synthesis_loss
+    from cylsfm.losses import LossConfig, view_synthesis_loss
     from cylsfm.nn import DispNet, PoseExpNet
     from cylsfm.nn import small_maps as small_maps_module
 
@@ -102,8 +102,6 @@ def train_step_bench(
     def step() -> None:
         disps = disp_net(target)
         pose_vec, masks = pose_net(target, sources)
-        sizes = [tuple(d.shape[-2:]) for d in disps]
-        photo = [(height, width)] * len(sizes) if cfg.full_resolution else sizes
         out = view_synthesis_loss(
             target,
             sources,
@@ -112,8 +110,6 @@ def train_step_bench(
             camera,
             cfg,
             explainability=masks if use_masks else None,
-            target_pyramid=image_pyramid(target, sizes),
-            source_pyramid=image_pyramid(sources, photo),
         )
         opt.zero_grad(set_to_none=True)
         out.total.backward()

@@ -171,3 +171,31 @@ def test_library_argument_errors_are_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--sequences" in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_train_help_states_the_defaults_of_the_default_preset(capsys):
+    """The defaults printed by ``cylsfm train --help`` are those of the default preset (they cannot drift)."""
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    d = preset("default")
+    for shown in (
+        f"default {d.data.width}x{d.data.height}",
+        f"default {d.batch_size})",
+        f"default {d.max_steps})",
+        f"seed (default {d.seed})",
+        "multiple of 128",
+        "default (the default)",
+    ):
+        assert shown in text, shown
+    assert d.data.workers is None and d.minutes is None and d.preset == "default"
+
+
+def test_print_config_prints_the_resolved_configuration(tmp_path, capsys):
+    import yaml
+
+    assert main(["train", "--out", str(tmp_path / "r"), "--size", "256x64", "--print-config", "seed=3"]) == 0
+    printed = yaml.safe_load(capsys.readouterr().out)
+    assert printed["data"]["width"] == 256 and printed["seed"] == 3 and printed["preset"] == "default"
+    assert printed["model"]["antisymmetric"] is True
+    assert not (tmp_path / "r").exists()  # nothing trained, nothing written

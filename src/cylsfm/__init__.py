@@ -6,8 +6,6 @@ module is callable).
 """
 
 from ._version import __version__
-
 from .geometry import CylindricalCamera, PinholeCamera, inverse_warp
 
 __all__ = ["CylindricalCamera", "PinholeCamera", "__version__", "inverse_warp"]
-

@@ -326,6 +326,39 @@ def warp_sources(
     return warps, valids
 
 
+def _photometric_terms(
+    cfg: LossConfig,
+    target: Tensor,
+    sources: Tensor,
+    disp: Tensor,
+    poses: Tensor,
+    camera: Camera,
+    masks: Tensor | None,
+    static_mask: Tensor | None,
+    identity: _IdentityErrors | None,
+    wrap: bool,
+) -> tuple[list[Tensor], list[Tensor], Tensor]:
+    """The photometric term(s) of one scale: every source warped with ``disp`` (resized to the images'
+    size with ``full_resolution``) into ``target [B,3,h,w]``, compared, and reduced per source (the paper)
+    or by the per-pixel minimum. Returns ``(terms, warped sources, error map [B,1,h,w])``."""
+    h, w = target.shape[-2:]
+    cam = camera.resized(w, h) if (w, h) != camera.size else camera
+    disp = resize_image(disp, (h, w), wrap) if cfg.full_resolution else disp
+    depth = 1.0 / disp.clamp(min=1e-6)
+    weight = torch.ones_like(depth)
+    if static_mask is not None:
+        weight = weight * image_pyramid(static_mask.to(depth.dtype), [(h, w)])[0]
+    warps, valids = warp_sources(sources, depth, poses, cam, wrap)
+    errors = [photometric_error(target, warped, cfg.ssim_weight, wrap) for warped in warps]
+    ident = identity(target, sources) if identity is not None else None
+    if cfg.min_reprojection:
+        term, err_map = min_reprojection_term(errors, valids, weight, ident)
+        return [term], warps, err_map
+    masks = None if masks is None else resize_image(masks, (h, w), wrap)
+    terms, err_map = per_source_terms(errors, valids, weight, ident, masks)
+    return terms, warps, err_map
+
+
 def view_synthesis_loss(
     target: Tensor,
     sources: Tensor,
@@ -336,8 +369,6 @@ def view_synthesis_loss(
     explainability: list[Tensor] | None = None,
     static_mask: Tensor | None = None,
     wrap: bool | None = None,
-    target_pyramid: list[Tensor] | None = None,
-    source_pyramid: list[Tensor] | None = None,
 ) -> LossOutput:
     """The multi-scale objective of eq. 1 (and its improved variants, per ``config``).
 
@@ -355,9 +386,6 @@ def view_synthesis_loss(
         explainability: per scale ``[B,S,H_s,W_s]`` masks in (0, 1), or ``None`` (all ones).
         static_mask: ``[B,1,H,W]`` or ``[1,1,H,W]`` weights in [0, 1] of pixels to use (e.g. 0 on a helmet).
         wrap: wrap at the seam; ``None``: if the camera wraps.
-        target_pyramid, source_pyramid: precomputed :func:`image_pyramid` of ``target`` at the
-            disparities' sizes and of ``sources`` at the sizes of the photometric term (the disparities'
-            sizes, or all the full size with ``full_resolution``); computed here when omitted.
 
     Returns:
         :class:`LossOutput` with terms ``photometric``, ``smooth``, ``explain`` and ``total``.
@@ -369,34 +397,23 @@ def view_synthesis_loss(
     if cfg.min_reprojection and explainability is not None and cfg.explain_weight > 0:
         raise InputError("explainability masks and minimum reprojection are alternatives: use one")
     sizes = [tuple(d.shape[-2:]) for d in disparities]
-    photo_sizes = [tuple(target.shape[-2:])] * len(sizes) if cfg.full_resolution else sizes
-    target_pyramid = target_pyramid if target_pyramid is not None else image_pyramid(target, sizes)
-    source_pyramid = source_pyramid if source_pyramid is not None else image_pyramid(sources, photo_sizes)
-    photo_targets = [target] * len(sizes) if cfg.full_resolution else target_pyramid
+    target_pyramid = image_pyramid(target, sizes)  # the smoothness's images, at the disparities' sizes
+    # the photometric term's images: the disparities' sizes, or all the full size with full_resolution
+    if cfg.full_resolution:
+        photo_targets, photo_sources = [target] * len(sizes), [sources] * len(sizes)
+    else:
+        photo_targets, photo_sources = target_pyramid, image_pyramid(sources, sizes)
     identity = _IdentityErrors(cfg.ssim_weight, wrap) if cfg.automask else None
     zero = target.new_zeros(())
     photometric, smooth, explain = zero, zero, zero
     warped_log, error_log = None, None
     for s, disp in enumerate(disparities):
-        h, w = photo_sizes[s]
-        cam = camera.resized(w, h) if (w, h) != camera.size else camera
-        disp_p = resize_image(disp, (h, w), wrap) if cfg.full_resolution else disp
-        depth = 1.0 / disp_p.clamp(min=1e-6)
-        tgt, src = photo_targets[s], source_pyramid[s]
-        weight = torch.ones_like(depth)
-        if static_mask is not None:
-            weight = weight * image_pyramid(static_mask.to(depth.dtype), [(h, w)])[0]
-        warps, valids = warp_sources(src, depth, poses, cam, wrap)
-        errors = [photometric_error(tgt, warped, cfg.ssim_weight, wrap) for warped in warps]
-        ident = identity(tgt, src) if identity is not None else None
-        if cfg.min_reprojection:
-            term, err_map = min_reprojection_term(errors, valids, weight, ident)
+        masks = explainability[s] if explainability is not None else None
+        terms, warps, err_map = _photometric_terms(
+            cfg, photo_targets[s], photo_sources[s], disp, poses, camera, masks, static_mask, identity, wrap
+        )
+        for term in terms:
             photometric = photometric + term
-        else:
-            masks = None if explainability is None else resize_image(explainability[s], (h, w), wrap)
-            terms, err_map = per_source_terms(errors, valids, weight, ident, masks)
-            for term in terms:
-                photometric = photometric + term
         if explainability is not None and cfg.explain_weight > 0:
             explain = explain + cfg.explain_weight * n_src * explainability_loss(explainability[s])
         for term in smoothness_terms(disp, target_pyramid[s], s, cfg, wrap):

@@ -35,9 +35,10 @@ def pick_device(name: str = "auto") -> torch.device:
 def prefers_channels_last(device: torch.device) -> bool:
     """Whether training convolutions run faster in channels-last memory on ``device``.
 
-    Measured (BENCHMARKS.md, a 512x128 training step): on CUDA and on CPUs with AVX-512 channels-last is
-    faster (0.75 s against 0.86 s); on CPUs with AVX2 only it is slower (2.22 s against 1.64 s; 1.27-1.64x
-    at 256x64).
+    Measured on the CPU (BENCHMARKS.md, a 512x128 training step): with AVX-512 channels-last is faster
+    (0.75 s against 0.86 s); with AVX2 only it is slower (2.22 s against 1.64 s; 1.27-1.64x at 256x64).
+    On CUDA it is chosen because cuDNN's tensor-core convolutions expect that layout; it has not been
+    measured there.
     """
     if device.type != "cpu":
         return device.type == "cuda"

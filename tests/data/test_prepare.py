@@ -201,3 +201,14 @@ def test_cli_mask_frames_and_splits(scene, tmp_path, capsys):
         == 2
     )
     assert "512x256" in capsys.readouterr().err
+
+
+def test_a_size_that_training_refuses_is_warned_about(scene, tmp_path, capsys):
+    """Panoramas 200 px wide are written, with a warning: full panoramas train at multiples of 128."""
+    out = tmp_path / "odd"
+    args = ["prepare", "equirect", str(scene["folder"]), str(out), "--no-progress"]
+    assert main([*args, "--size", "200x50"]) == 0
+    err = capsys.readouterr().err
+    assert "200x50" in err and "multiple of 128" in err and "cylsfm train refuses" in err
+    assert main([*args[:3], str(tmp_path / "fine"), "--no-progress", "--size", "128x32"]) == 0
+    assert "refuses" not in capsys.readouterr().err

@@ -89,7 +89,7 @@ def test_old_configurations_load_and_removed_options_are_named(tmp_path: Path) -
         config_from_dict(on, saved=True)
     bad = tmp_path / "bad.pt"
     save_checkpoint(bad, {"config": on, "step": 1, "disp_net": {}, "pose_net": {}})
-    with pytest.raises(CheckpointError, match="data.roll"):
+    with pytest.raises(CheckpointError, match=r"data\.roll"):
         load_models(bad)
     assert config_from_dict({"preset": "default", "plain_photometric_steps": 0}).model.compass
     assert preset("default").model.antisymmetric

@@ -244,7 +244,29 @@ def run_prepare(args: argparse.Namespace) -> int:
         print(line)
     if args.split is not None:
         _write_splits(Path(args.out), args.split, args.split_mode, args.overwrite)
+    _warn_untrainable(Path(args.out))
     return 0
+
+
+def _warn_untrainable(root) -> None:
+    """A warning for panoramas that ``cylsfm train`` would refuse at their own size (full panoramas need
+    widths that are multiples of 128 and heights of at least 32)."""
+    import sys
+
+    from ..data.format import scan_dataset
+    from ..nn.layers import check_input_size
+
+    for seq in scan_dataset(root):
+        cam = seq.camera
+        try:
+            check_input_size(cam.width, cam.height, cam.wraps)
+        except ValueError as exc:
+            print(
+                f"warning: {root / seq.name}: {cam.width}x{cam.height} panoramas: cylsfm train refuses this "
+                f"size unless given another --size ({exc})",
+                file=sys.stderr,
+            )
+            return
 
 
 def _write_splits(root, fractions, mode: str, overwrite: bool) -> None:

@@ -36,11 +36,18 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", help="dataset root (format v1 or the original SfMLearner strips)")
     p.add_argument("--out", required=True, help="run directory (config, checkpoints, logs)")
     p.add_argument("--config", help="YAML file: a preset name and any fields to change")
-    p.add_argument("--preset", help="paper-synthia | paper-headcam | improved | default")
-    p.add_argument("--size", type=parse_size, help="training size WxH (e.g. 512x128)")
-    p.add_argument("--batch-size", type=int)
-    p.add_argument("--max-steps", type=int)
-    p.add_argument("--minutes", type=float, help="wall-clock budget; stops with a checkpoint when spent")
+    p.add_argument("--preset", help="default (the default) | improved | paper-synthia | paper-headcam")
+    p.add_argument(
+        "--size",
+        type=parse_size,
+        help="training size WxH (default 512x128); with wrap-around the width must be a multiple of 128 "
+        "and the height at least 32",
+    )
+    p.add_argument("--batch-size", type=int, help="samples per step and process (default 4)")
+    p.add_argument("--max-steps", type=int, help="steps to train (default 60000)")
+    p.add_argument(
+        "--minutes", type=float, help="wall-clock budget; stops with a checkpoint when spent (default: none)"
+    )
     p.add_argument("--wrap", action=argparse.BooleanOptionalAction, default=None, help="wrap-around on/off")
     p.add_argument(
         "--fov", type=float, help="train on the centred crop of this many degrees (no wrap below 360)"
@@ -48,26 +55,32 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--pose-head",
         choices=["mean", "equivariant", "auto"],
-        help="auto (default): equivariant on full panoramas, mean on crops",
+        help="auto (preset default's): equivariant on full panoramas, mean on crops; mean: the paper's",
     )
     p.add_argument(
         "--compass",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="add the visual compass's yaw (column shift between the panoramas) to the predicted pose",
+        help="add the visual compass's yaw (column shift between the panoramas) to the predicted pose "
+        "(on in preset default)",
     )
     p.add_argument(
         "--antisymmetric",
         action=argparse.BooleanOptionalAction,
         default=None,
         help="pose from frame pairs, g(target, source) - g(source, target), trained under a fading slot "
-        "prior (default on; --no-antisymmetric: the paper's one-pass network)",
+        "prior (on in preset default; --no-antisymmetric: a one-pass network, still with the compass and "
+        "the equivariant head unless they are turned off)",
     )
     p.add_argument("--mask", help="static mask image: white = pixels to use (e.g. without the helmet)")
     p.add_argument("--split", help="split to train on (train, val, test, a split file path, or 'all')")
-    p.add_argument("--workers", type=int, help="data loader processes")
-    p.add_argument("--seed", type=int)
-    p.add_argument("--device", help="auto | cpu | cuda | cuda:N")
+    p.add_argument(
+        "--workers",
+        type=int,
+        help="data loader processes (default: 0 on the CPU with the frames cached in memory, else 2)",
+    )
+    p.add_argument("--seed", type=int, help="random seed (default 0)")
+    p.add_argument("--device", help="auto (default: CUDA when present) | cpu | cuda | cuda:N")
     p.add_argument(
         "--resume",
         action="store_true",
@@ -75,6 +88,11 @@ def _train_args(p: argparse.ArgumentParser) -> None:
         "(flags and key=value change them: e.g. a new --max-steps or --minutes)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--print-config",
+        action="store_true",
+        help="print the resolved configuration (YAML, as saved in OUT/config.yaml) and exit",
+    )
     p.add_argument("overrides", nargs="*", help="further settings as key=value, e.g. loss.ssim_weight=0.85")
 
 
@@ -113,6 +131,13 @@ def run_train(args: argparse.Namespace) -> int:
     from ..train.trainer import train
 
     cfg = train_config_from_args(args)
+    if args.print_config:
+        import yaml
+
+        from ..model.config import config_to_dict
+
+        print(yaml.safe_dump(config_to_dict(cfg), sort_keys=False), end="")
+        return 0
     if not cfg.data.root and not args.resume:
         raise CylsfmError("no training data: pass --data ROOT (or data.root in --config)")
     summary = train(cfg, args.out, resume=args.resume, progress=not args.no_progress)

@@ -91,7 +91,7 @@ def train_step_bench(
     )
     if loss == "paper":  # eq. 1 with every term: L1 + explainability + second-order smoothness
         cfg = LossConfig(smooth_weight=2.0, explain_weight=0.2)
-    else:  # the default recipe (preset "improved")
+    else:  # the improved loss (presets "improved" and "default")
         from cylsfm.model.config import preset
 
         cfg = preset("improved").loss
@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> None:
         "--loss",
         choices=["paper", "improved"],
         default="paper",
-        help="paper: eq. 1 with explainability; improved: the default recipe",
+        help="paper: eq. 1 with explainability; improved: the loss of presets improved and default (with the paper's one-pass pose network)",
     )
     parser.add_argument(
         "--small-maps",

@@ -49,3 +49,12 @@ def test_bad_configurations_are_clear_errors(tmp_path):
         preset("nope")
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "missing.yaml")
+
+
+def test_rules_between_settings_are_checked_in_the_configuration():
+    with pytest.raises(ConfigError, match="alternatives"):
+        apply_overrides(preset("improved"), ["model.explainability=true", "loss.explain_weight=0.2"])
+    with pytest.raises(ConfigError, match="no explainability"):
+        apply_overrides(preset("default"), ["model.explainability=true"])
+    with pytest.raises(ConfigError, match="start <= end"):
+        apply_overrides(preset("default"), ["model.prior_fade_start=900"])

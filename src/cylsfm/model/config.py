@@ -152,6 +152,11 @@ class TrainConfig:
                 "model.antisymmetric has no explainability masks: set model.explainability=false, or "
                 "model.antisymmetric=false (--no-antisymmetric) for a one-pass pose network"
             )
+        if m.explainability and self.loss.explain_weight > 0 and self.loss.min_reprojection:
+            raise ConfigError(
+                "model.explainability masks and loss.min_reprojection are alternatives: use one "
+                "(loss.min_reprojection=false for the paper's masks)"
+            )
         if m.prior_fade_end != 0 and m.prior_fade_start > m.prior_fade_end:
             raise ConfigError(
                 "model.prior_fade_start and model.prior_fade_end must satisfy start <= end, got "

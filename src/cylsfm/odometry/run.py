@@ -277,25 +277,13 @@ def _finish(
     started: float,
 ) -> OdometryResult:
     """Scale, chain, and write the trajectory, the plot, the measures and the summary."""
-    camera_height, refine = opt.camera_height, opt.refine
+    refine = opt.refine
     refined = keyframe_steps(np.stack(state.refined), tracker.every) if refine else None
-    steps = refined if refined is not None else np.stack(state.net)
-    unit, scale = ("metres (ground-truth depth)", None) if depths is not None else ("network units", None)
-    comments = []
-    if camera_height is not None:
-        scale, used = metric_scale(np.asarray(state.heights), camera_height)
-        steps = steps * np.where(np.arange(4)[:, None] < 3, [1.0, 1.0, 1.0, scale], 1.0)  # translations in m
-        unit = "metres"
-        comments.append(
-            f"unit: metres (camera height {camera_height:g} m over the ground fitted in {used} frames: "
-            f"{scale:.6g} m per network unit)"
-        )
-        if opt.save_depth_maps:
-            _scaled_depth(dest, state, scale)
-    else:
-        comments.append(
-            f"unit: {unit}" + ("" if depths is not None else " (give the camera height for metres)")
-        )
+    steps, unit, scale, comments = _in_unit(
+        refined if refined is not None else np.stack(state.net), state, opt, depths
+    )
+    if scale is not None and opt.save_depth_maps:
+        _scaled_depth(dest, state, scale)
     comments.append(
         f"cylsfm {__version__} odometry of {ride.path}" + (", refined by direct alignment" if refine else "")
     )
@@ -346,6 +334,24 @@ def _finish(
         timings=tracker.times.parts,
         seconds=seconds,
     )
+
+
+def _in_unit(
+    steps: np.ndarray, state: State, opt: OdometrySettings, depths: list[Path] | None
+) -> tuple[np.ndarray, str, float | None, list[str]]:
+    """The steps ``[M-1,4,4]`` in metres when the camera height is given (the ground fitted in every
+    frame), else as they are: ``(steps, unit, metres per network unit or None, the file's unit line)``."""
+    if opt.camera_height is None:
+        unit = "metres (ground-truth depth)" if depths is not None else "network units"
+        hint = "" if depths is not None else " (give the camera height for metres)"
+        return steps, unit, None, [f"unit: {unit}{hint}"]
+    scale, used = metric_scale(np.asarray(state.heights), opt.camera_height)
+    steps = steps * np.where(np.arange(4)[:, None] < 3, [1.0, 1.0, 1.0, scale], 1.0)  # translations in m
+    line = (
+        f"unit: metres (camera height {opt.camera_height:g} m over the ground fitted in {used} frames: "
+        f"{scale:.6g} m per network unit)"
+    )
+    return steps, "metres", scale, [line]
 
 
 def _mount_summary(state: State) -> dict[str, Any] | None:

@@ -10,7 +10,6 @@ zeros: the same layers then compute the ordinary convolutions of a bounded image
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -18,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import InputError
+from ..geometry import seam
 from ..geometry.seam import memory_format_of
 
 __all__ = ["circular_pad", "pad_cat", "relu_pad", "standard_ops"]
@@ -76,34 +76,13 @@ def _plain() -> bool:
 
 
 def circular_pad(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
-    """Pad the last (width) dimension of ``x`` circularly by ``left`` / ``right`` columns (the values of
-    :func:`cylsfm.geometry.seam.circular_pad`, with a lean backward pass).
-
-    Args:
-        x: tensor ``[..., W]`` with ``W >= 1``.
-        left: number of columns taken from the right edge and prepended (``>= 0``).
-        right: number of columns taken from the left edge and appended (``>= 0``).
-
-    Returns:
-        Tensor ``[..., left + W + right]`` with the same memory format as ``x``.  Unlike
-        ``F.pad(..., mode="circular")`` the padding may exceed ``W`` (the panorama then wraps around
-        more than once), and channels-last inputs stay channels-last (``F.pad`` in circular mode
-        returns a standard-contiguous tensor for a channels-last input).
-    """
+    """``x [..., W]`` padded circularly by ``left`` / ``right`` columns: the values (arguments, shapes and
+    memory format) of :func:`cylsfm.geometry.seam.circular_pad`, with a lean backward pass where neither
+    pad exceeds ``W``."""
     w = x.shape[-1]
-    if left == 0 and right == 0:
-        return x
-    if left <= w and right <= w:
-        if _plain():
-            return torch.cat([x[..., w - left :], x, x[..., :right]], dim=-1)
+    if (left or right) and left <= w and right <= w and not _plain():
         return _CircularPadWidth.apply(x, left, right)
-    # Very narrow feature maps (e.g. width 1 at the deepest level): tile then slice.
-    n_left = math.ceil(left / w)
-    n_right = math.ceil(right / w)
-    tiled = torch.cat([x] * (n_left + 1 + n_right), dim=-1)
-    start = n_left * w - left
-    out = tiled[..., start : start + left + w + right]
-    return out.contiguous(memory_format=memory_format_of(x))
+    return seam.circular_pad(x, left, right)
 
 
 def _zero_outside(g: torch.Tensor, height: int, start: int, width: int) -> None:

@@ -12,14 +12,30 @@ import cv2
 import numpy as np
 
 from cylsfm.data.io import save_png
-from cylsfm.data.prepare.synthia import CONVENTIONS
-from cylsfm.data.stitch import view_rotation
 from cylsfm.data.synth import SynthConfig
 from cylsfm.data.synth.render import render_frame
 from cylsfm.data.synth.town import StreetScene
 from cylsfm.geometry import PinholeCamera
 
 VIEWS = (("Omni_F", 0.0), ("Omni_R", 90.0), ("Omni_B", 180.0), ("Omni_L", 270.0))
+#: A view's axes in the rig's frame (columns: the view's x right, y down, z forward; ``p_rig = R p_view``),
+#: written out from the axes rather than taken from the stitcher: a view turned right (yaw 90) looks along
+#: the rig's +x and its right hand points backwards (-z); one turned left (270) looks along -x.
+VIEW_AXES = {
+    0.0: np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+    90.0: np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
+    180.0: np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]),
+    270.0: np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]),
+}
+#: The axes a file's pose matrices are written in -> ours (x right, y down, z forward), as the diagonal of
+#: ``S`` in ``S M S``, from what each convention means: ``y-up`` keeps x right and z forward with y up
+#: (Unity); ``x-flip`` has x pointing left.
+FILE_AXES = {
+    "y-up": (1.0, -1.0, 1.0),
+    "none": (1.0, 1.0, 1.0),
+    "yz-flip": (1.0, -1.0, -1.0),
+    "x-flip": (-1.0, 1.0, 1.0),
+}
 FOCAL, CX, CY, WIDTH, HEIGHT = 532.740352, 640.0, 380.0, 1280, 760
 BASELINE = 0.8
 
@@ -59,8 +75,7 @@ def write_synthia_standin(
     (params / "intrinsics.txt").write_text(
         f"{FOCAL * scale}\n\n{CX * scale}\n\n{CY * scale}\n\n{BASELINE}\n", encoding="utf-8"
     )
-    s = np.eye(4)
-    s[:3, :3] = CONVENTIONS[convention.removesuffix("-inv")]
+    s = np.diag([*FILE_AXES[convention.removesuffix("-inv")], 1.0])
     truth = {}
     for side in sides:
         sub = "Stereo_Left" if side == "left" else "Stereo_Right"
@@ -68,7 +83,7 @@ def write_synthia_standin(
         for k, rig in enumerate(truth[side]):
             for view, yaw in VIEWS:
                 turn = np.eye(4)
-                turn[:3, :3] = view_rotation(yaw)
+                turn[:3, :3] = VIEW_AXES[yaw]
                 c2w = rig @ turn
                 image, depth = render_frame(replace(scene, c2w=c2w[None]), 0, camera)
                 name = f"{k:06d}"

@@ -22,7 +22,7 @@ from cylsfm.data.synth.render import render_frame
 from cylsfm.data.synth.room import make_pose, render_room
 from cylsfm.errors import CylsfmError
 from cylsfm.geometry import CylindricalCamera, EquirectangularCamera, PinholeCamera, inverse_warp, invert
-from synthia_standin import write_synthia_standin
+from synthia_standin import VIEW_AXES, write_synthia_standin
 
 VIEWS = (("front", 0.0), ("right", 90.0), ("back", 180.0), ("left", 270.0))
 OUT_W, OUT_H = 128, 32
@@ -67,7 +67,7 @@ def rig(tmp_path_factory):
     for i, c2w in enumerate(poses):
         for name, yaw in VIEWS:
             turn = torch.eye(4, dtype=torch.float64)
-            turn[:3, :3] = torch.from_numpy(view_rotation(yaw))
+            turn[:3, :3] = torch.from_numpy(VIEW_AXES[yaw])  # the axes written out, not the stitcher's
             image, z = render_room(camera, c2w @ turn, supersample=3)
             save_png(root / name / f"{i:04d}.png", _u8(image))
             np.save(root / f"{name}_depth" / f"{i:04d}.npy", z[0, 0].numpy())
@@ -101,6 +101,42 @@ def test_views_give_the_direct_cylindrical_render_and_depth(rig, tmp_path):
     warped, valid = inverse_warp(images[1], depth0, rel_pose[None].float(), seq.camera)
     err = ((warped - images[0]).abs() * valid).sum() / valid.sum() / 3
     assert valid.float().mean() > 0.8 and float(err) < 0.04
+
+
+def test_view_rotation_from_first_principles():
+    """The stitcher's view axes against the axes written out in the tests (yaw right, pitch up, roll clockwise)."""
+    for yaw, axes in VIEW_AXES.items():
+        assert np.allclose(view_rotation(yaw), axes, atol=1e-12), yaw
+    s, c = math.sin(math.radians(30)), math.cos(math.radians(30))
+    assert np.allclose(view_rotation(0.0, 90.0) @ [0, 0, 1], [0, -1, 0])  # pitched up: looks along -y (up)
+    assert np.allclose(view_rotation(90.0, 30.0) @ [0, 0, 1], [c, -s, 0])  # turned right, then up
+    assert np.allclose(
+        view_rotation(0.0, 0.0, 90.0) @ [1, 0, 0], [0, 1, 0]
+    )  # clockwise: its right points down
+
+
+@pytest.mark.parametrize(("lit", "azimuth"), [("right", 90.0), ("left", -90.0), ("back", 180.0)])
+def test_a_view_lands_at_its_azimuth(tmp_path, lit, azimuth):
+    """Only one view of the rig is white: the panorama is white around the column of its azimuth
+    (u = W/(2 pi) theta + W/2, theta = atan2(x, z)), as ``prepare views`` reads the rig file's yaws."""
+    root = tmp_path / "rig"
+    face = PinholeCamera.from_fov(32, 32, 90.0)
+    views = []
+    for name, yaw in VIEWS:
+        (root / name).mkdir(parents=True)
+        save_png(root / name / "0000.png", np.full((32, 32, 3), 255 if name == lit else 0, np.uint8))
+        views.append({"name": name, "images": name, "camera": face.to_dict(), "yaw": yaw})
+    (root / "rig.json").write_text(json.dumps({"views": views, "fps": 5}))
+    width = 64
+    path, n, _ = prepare_views(
+        root / "rig.json", tmp_path / "out", RigOptions(size=(width, 16), vfov_h=0.5), progress=False
+    )
+    row = np.asarray(load_image(next((path / "images").iterdir())))[8, :, 0].astype(np.float64) / 255
+    u = np.arange(width)
+    centre = width / (2 * math.pi) * math.radians(azimuth) + width / 2  # 48 right, 16 left, 0 (= 64) behind
+    offset = (u - centre + width / 2) % width - width / 2  # columns from the centre, across the seam
+    assert n == 1 and abs(float((row * offset).sum() / row.sum())) < 1.0
+    assert row[np.abs(offset) <= 6].min() > 0.9 and row[np.abs(offset) >= 10].max() < 0.1  # a 90-degree view
 
 
 def test_views_resume_mask_and_bad_rigs(rig, tmp_path):

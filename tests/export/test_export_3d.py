@@ -16,7 +16,7 @@ from cylsfm.cli import main
 from cylsfm.data.io import save_png
 from cylsfm.data.synth.room import make_pose, render_room
 from cylsfm.export.mesh import build_mesh
-from cylsfm.export.ods import anaglyph, render_eye, stereo_layout
+from cylsfm.export.ods import anaglyph, ods_pair, render_eye, stereo_layout
 from cylsfm.export.scene import Scene, load_scene
 from cylsfm.export.stereo import StereoOptions, _clip_factor
 from cylsfm.geometry import CylindricalCamera, EquirectangularCamera
@@ -238,3 +238,96 @@ def test_load_scene_finds_a_dataset_frames_camera(tmp_path, room):
     np.save(tmp_path / "d.npy", room["scene"].depth)
     scene = load_scene(seq / "images" / "000000.png", depth=tmp_path / "d.npy")
     assert scene.camera.to_dict() == cam.to_dict()
+
+
+# ---------------------------------------------------------------------------------------------------
+# The left eye is the left eye: a near object, seen from the eye beside the centre on the viewer's left
+# (x right, z forward: looking along +z the left eye is at -x), appears turned to the right, i.e. at a
+# larger azimuth and column than from the centre, and the right eye's at a smaller one.
+def _white_stripe(depth: float, width: int, height: int, column: float) -> Scene:
+    x = np.arange(width)
+    rgb = np.zeros((height, width, 3), np.uint8)
+    rgb[...] = np.round(255 * np.exp(-0.5 * ((x - column) / 3) ** 2))[None, :, None]
+    return Scene(
+        rgb, np.full((height, width), depth, np.float32), CylindricalCamera.full(width, height), "metres", ""
+    )
+
+
+def _seen_column(eye: str, azimuth: float, rho: float, ipd: float, width: int) -> float:
+    """The column at which an eye of a viewer turning on the spot sees a point at ``azimuth`` and horizontal
+    distance ``rho``: the gaze ``a`` (finely searched) for which the point lies straight ahead of the eye
+    ``ipd / 2`` beside the centre, to the left (``left``) or right of the gaze ``(sin a, 0, cos a)``."""
+    a = azimuth + np.linspace(-0.5, 0.5, 200001)
+    side = -1.0 if eye == "left" else 1.0  # the gaze's right hand is (cos a, 0, -sin a)
+    ex, ez = side * ipd / 2 * np.cos(a), -side * ipd / 2 * np.sin(a)
+    px, pz = rho * math.sin(azimuth) - ex, rho * math.cos(azimuth) - ez  # eye to point
+    across = px * np.cos(a) - pz * np.sin(a)  # sideways from the gaze: 0 when the point is ahead
+    best = a[np.argmin(np.where(px * np.sin(a) + pz * np.cos(a) > 0, np.abs(across), np.inf))]
+    return float(best) * width / (2 * math.pi) + width / 2  # u = fx theta + cx
+
+
+def test_the_left_eye_sees_a_near_object_turned_right_in_every_layout():
+    width, rho, ipd = 256, 0.5, 0.2
+    column = 100.3
+    scene = _white_stripe(rho, width, 32, column)
+    azimuth = (column - width / 2) * 2 * math.pi / width
+    left_at, right_at = (_seen_column(e, azimuth, rho, ipd, width) for e in ("left", "right"))
+    assert left_at - column == pytest.approx(column - right_at, abs=0.01) and left_at > column + 7
+    left, right = ods_pair(scene, scene.camera, ipd)
+    assert _centre(left) == pytest.approx(left_at, abs=0.3) and _centre(right) == pytest.approx(
+        right_at, abs=0.3
+    )
+    top_bottom = stereo_layout(left, right, "top-bottom")
+    assert _centre(top_bottom[:32]) == pytest.approx(left_at, abs=0.3)  # the left eye on top
+    assert _centre(top_bottom[32:]) == pytest.approx(right_at, abs=0.3)
+    side = stereo_layout(left, right, "side-by-side")
+    assert _centre(side[:, :width]) == pytest.approx(left_at, abs=0.3)  # the left eye on the left
+    assert _centre(side[:, width:]) == pytest.approx(right_at, abs=0.3)
+    red_cyan = anaglyph(left, right)  # red for the left eye (a red filter over it), cyan for the right
+    assert _centre(red_cyan[..., [0, 0, 0]]) == pytest.approx(left_at, abs=0.3)
+    assert _centre(red_cyan[..., [1, 1, 1]]) == pytest.approx(right_at, abs=0.3)
+
+
+@pytest.mark.parametrize("layout", ["top-bottom", "side-by-side"])
+def test_cli_stereo_puts_the_left_eye_first(tmp_path, layout):
+    width, height, rho, ipd, column = 256, 32, 0.5, 0.2, 100.3
+    scene = _white_stripe(rho, width, height, column)
+    save_png(tmp_path / "pano.png", scene.image)
+    np.save(tmp_path / "depth.npy", scene.depth)
+    out = tmp_path / "st.png"
+    args = ["export", "stereo", str(tmp_path / "pano.png"), str(out), "--depth", str(tmp_path / "depth.npy")]
+    assert main([*args, "--ipd", str(ipd), "--layout", layout, "--anaglyph"]) == 0
+    from cylsfm.data.io import load_image
+
+    pair = np.asarray(load_image(out))
+    first, second = (
+        (pair[:height], pair[height:]) if layout == "top-bottom" else (pair[:, :width], pair[:, width:])
+    )
+    azimuth = (column - width / 2) * 2 * math.pi / width
+    assert _centre(first) == pytest.approx(_seen_column("left", azimuth, rho, ipd, width), abs=0.5)
+    assert _centre(second) == pytest.approx(_seen_column("right", azimuth, rho, ipd, width), abs=0.5)
+    red_cyan = np.asarray(load_image(tmp_path / "st_anaglyph.png"))
+    assert _centre(red_cyan[..., [0, 0, 0]]) - _centre(red_cyan[..., [1, 1, 1]]) > 10  # red: the left eye
+
+
+def test_cli_stereo_video_puts_the_left_eye_on_top(tmp_path):
+    """A video through a network's depth (relative, one scale for the clip) and a wide IPD: in every frame
+    the near stripe sits further right in the top (left) eye than in the bottom one."""
+    stripe = _white_stripe(1.0, W, H, 40.3).image
+    video = tmp_path / "in.mp4"
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("mpeg4", rate=5)
+        stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
+        for _ in range(2):
+            for packet in stream.encode(av.VideoFrame.from_ndarray(stripe, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode(None):
+            container.mux(packet)
+    out = tmp_path / "st.mp4"
+    args = ["export", "stereo", str(video), str(out), "--checkpoint", str(untrained_checkpoint(tmp_path))]
+    assert main([*args, "--ipd", "1.0", "--no-progress"]) == 0
+    with av.open(str(out)) as container:
+        frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    assert len(frames) == 2
+    for frame in frames:
+        assert _centre(frame[:H]) - _centre(frame[H:]) > 4.0  # 2 asin(0.5 / 3) is 6.8 columns

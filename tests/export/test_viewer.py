@@ -56,6 +56,34 @@ def test_the_page_needs_nothing_from_outside(page):
     assert "MIT" in (out / "three-LICENSE.txt").read_text()
 
 
+def test_the_trajectory_is_the_poses_seen_from_the_first(page, tmp_path):
+    """The trajectory written into the page: little-endian float32 positions of the TUM poses in the frame
+    of the first camera (x right, y down, z forward), worked out by hand for a camera that starts at
+    (1, 0, 2) looking along the world's +x, moves 1 m ahead, 0.5 m to its right, then 0.25 m down."""
+    poses = [
+        make_pose(1.0, 0.0, 2.0, yaw_deg=90.0),
+        make_pose(2.0, 0.0, 2.0, yaw_deg=90.0),
+        make_pose(2.0, 0.0, 1.5, yaw_deg=120.0),  # its own turn does not move it
+        make_pose(2.0, 0.25, 1.5, yaw_deg=120.0),
+    ]
+    write_tum(tmp_path / "ride.txt", np.arange(4.0), np.stack([p.numpy() for p in poses]))
+    args = [
+        "export",
+        "viewer",
+        str(page / "pano.png"),
+        str(tmp_path / "out"),
+        "--depth",
+        str(page / "depth.npy"),
+    ]
+    assert main([*args, "--trajectory", str(tmp_path / "ride.txt")]) == 0
+    data = json.loads((tmp_path / "out" / "scene.js").read_text().split("=", 1)[1].rstrip().rstrip(";"))
+    import base64
+
+    positions = np.frombuffer(base64.b64decode(data["trajectory"]), dtype="<f4").reshape(-1, 3)
+    expected = [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [0.5, 0.25, 1.0]]
+    np.testing.assert_allclose(positions, expected, atol=1e-6)
+
+
 def _browser() -> str | None:
     return next((b for b in map(shutil.which, BROWSERS) if b), None)
 

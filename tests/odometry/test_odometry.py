@@ -103,12 +103,29 @@ def test_a_killed_run_continues_to_the_same_trajectory(ckpt, ride, tmp_path, mon
             ride, ckpt, tmp_path / "killed", OdometrySettings(refine=True, device="cpu", progress=False)
         )
     assert not (tmp_path / "killed" / "trajectory.txt").exists()
-    monkeypatch.setattr(Tracker, "push", push)
+    with np.load(tmp_path / "killed" / odometry_run.STATE_FILE) as saved:  # two chunks of 3 frames were done
+        assert len(saved["stems"]) == 6 and not bool(saved["finished"])
+    # the work done on resuming: the frames after the saved ones pushed and their depth predicted, once each
+    pushed: list[list[int]] = []
+    depth_frames: list[int] = []
+    depth = odometry_run.Predictor.depth
+
+    def recording_push(self, indices, images):
+        pushed.append(list(indices))
+        return push(self, indices, images)
+
+    def counting_depth(self, images, camera):
+        depth_frames.append(int(images.shape[0]))
+        return depth(self, images, camera)
+
+    monkeypatch.setattr(Tracker, "push", recording_push)
+    monkeypatch.setattr(odometry_run.Predictor, "depth", counting_depth)
     resumed = cylsfm.odometry(
         ride, ckpt, tmp_path / "killed", OdometrySettings(refine=True, device="cpu", progress=False)
     )
     np.testing.assert_allclose(resumed.c2w, whole.c2w, atol=1e-6)
-    assert resumed.timings["depth"] < whole.timings["depth"]  # the first chunks were not redone
+    assert pushed == [[6, 7, 8], [9]]  # the first chunks were not redone
+    assert sum(depth_frames) == N_FRAMES - 6
 
 
 def test_a_video_ride(ckpt, ride, tmp_path):

@@ -23,6 +23,8 @@ class _HeadingNet(nn.Module):
     azimuth ``theta``) and reports ``gain * theta``: right when the motion is straight ahead (azimuth 0),
     pulled towards straight ahead otherwise (``gain < 1``), like a network trained on forward-facing rides."""
 
+    pairs = False  # a one-pass network: Predictor makes no further passes with it
+
     def __init__(self, gain: float) -> None:
         super().__init__()
         self.gain = gain

@@ -189,7 +189,7 @@ def test_fov_crop_trains_on_the_cropped_width(tiny_data, tmp_path):
     models = load_models(run)
     cfg = models.config
     assert (cfg.data.fov, cfg.data.width, cfg.wrap) == (180, 256, False)
-    assert models.disp_net.wrap is False and models.pose_net.wrap is False
+    assert models.disp_net.wrap is False and models.pose_net.net.wrap is False
     # a 256-pixel panorama given to the trained model is cropped to those 128 columns
     predictor = Predictor(models)
     camera = CylindricalCamera.full(256, 32)
@@ -201,12 +201,11 @@ def test_fov_crop_trains_on_the_cropped_width(tiny_data, tmp_path):
 
 
 def test_equivariant_head_is_trained_and_restored(tiny_data, tmp_path):
-    """The yaw-equivariant pose head with roll augmentation: the restored network turns its output with a roll
-    of the panoramas (the averaging head would be invariant to it)."""
+    """The yaw-equivariant pose head: the restored network turns its output with a roll of the panoramas (the
+    averaging head would be invariant to it)."""
     run = tmp_path / "eq"
     extra = {
         "model.pose_head": "equivariant",
-        "data.roll": "true",
         "data.width": 256,
         "model.compass": "false",
         "model.antisymmetric": "false",  # a one-source-set network: its first step already moves
@@ -215,8 +214,8 @@ def test_equivariant_head_is_trained_and_restored(tiny_data, tmp_path):
     [row] = _metrics(run)
     assert row["step"] == 1 and row["translation_norm"] > 0
     models = load_models(run)
-    assert models.config.model.pose_head == "equivariant" and models.config.data.roll is True
-    assert models.pose_net.pose_head == "equivariant"
+    assert models.config.model.pose_head == "equivariant"
+    assert type(models.pose_net.net.head).__name__ == "EquivariantPoseHead"
     gen = torch.Generator().manual_seed(0)
     target, sources = torch.rand(1, 3, 32, 256, generator=gen), torch.rand(1, 2, 3, 32, 256, generator=gen)
     with torch.no_grad():
@@ -225,7 +224,7 @@ def test_equivariant_head_is_trained_and_restored(tiny_data, tmp_path):
     # half a turn of yaw: x and z of the translation and of the rotation vector change sign
     flip = torch.tensor([-1.0, 1.0, -1.0, -1.0, 1.0, -1.0])
     torch.testing.assert_close(rolled, pose * flip, rtol=1e-4, atol=1e-7)
-    assert (pose[..., [0, 2, 3, 5]].abs() > 1e-6).all()  # not trivially zero
+    assert pose[..., [0, 2, 3, 5]].abs().max() > 1e-5  # not trivially zero
 
 
 def test_data_parallel_with_two_cpu_processes(tiny_data, tmp_path):
@@ -319,5 +318,5 @@ def test_saved_configurations_keep_the_settings_they_were_written_with():
         del old["model"][key]
     saved = config_from_dict(old, "old run", saved=True)
     assert not saved.model.compass and not saved.model.antisymmetric and not saved.model.scaffold
-    assert saved.pose_head == "mean" and build_models(saved)[1].encoder[0][0].in_channels == 9
+    assert saved.pose_head == "mean" and build_models(saved)[1].net.encoder.convs[0].in_channels == 9
     assert config_from_dict(old, "a user's file").model.antisymmetric  # user files start from the preset

@@ -191,12 +191,6 @@ class _DepthDisp(nn.Module):
         return [(1.0 / self.depth).expand(x.shape[0], -1, -1, -1)]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="Predictor._iterate composes step @ pose; the step read from the warped source is "
-    "T_cur^-1 T_true, so the pose is pose @ step (reported in issue 25's closing note; drop this mark with the fix)",
-)
 @pytest.mark.parametrize("iterations", [1, 2])
 def test_passes_compose_a_turn_and_a_translation_over_non_flat_depth(iterations: int) -> None:
     """A room 2 to 5 m around the camera, two sources turned by 25 and -20 degrees and moved by 0.3-0.5 m.

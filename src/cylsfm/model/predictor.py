@@ -8,7 +8,8 @@ unknown scale.
 A pose network that reads the motion from frame pairs (the antisymmetric pair network of the default
 recipe) is applied more than once (``pose_iterations``): each source is warped into the target's view by
 the current pose with the depth network's depth of the target, the pose network reads what motion is
-left between the target and that warped source, and the two are composed. It is the pose network's own
+left between the target and that warped source, and the two are composed (the current pose, then the
+step read in the target's frame). It is the pose network's own
 reading of a smaller residual motion: nothing is optimised and no photometric cost is evaluated
 (RESULTS.md, "The pose network applied again to its own warp").
 """
@@ -175,8 +176,12 @@ class Predictor:
         """Refine ``pose [B,S,4,4]`` (float64, ``T_tgt_to_src``) of the network inputs ``tgt [B,3,h,w]``,
         ``src [B,S,3,h,w]`` (``camera``: theirs) by :attr:`pose_iterations` further passes of the pose
         network: each reads the target and every source warped into the target's view by the current pose
-        with the target's predicted depth (the target's own pixels where the warp leaves the source), and
-        its pose is composed before the current one."""
+        with the target's predicted depth (the target's own pixels where the warp leaves the source).
+
+        The warped source is the view of a virtual camera ``V`` whose pixels see, with the target's depth,
+        what the source sees through the current pose: ``T_tgt_to_V = T_cur^-1 T_true``. The network reads
+        that step, so the pose is ``T_cur @ step`` (the step is applied in the target's frame, before the
+        current pose; for pure yaws, which commute, the order would not show)."""
         b, s = src.shape[:2]
         depth = 1.0 / self.models.disp_net(tgt)[0].float().clamp(min=1e-6)
         depth, target = depth.repeat_interleave(s, 0), tgt.float().repeat_interleave(s, 0)
@@ -185,5 +190,5 @@ class Predictor:
             warped, valid = inverse_warp(flat, depth, pose.flatten(0, 1).float(), camera)
             warped = torch.where(valid.expand_as(warped), warped, target).to(src.dtype)
             step = self.models.pose_net(tgt, warped.view(b, s, *warped.shape[1:]))[0]
-            pose = pose_vec_to_mat(step.double()) @ pose
+            pose = pose @ pose_vec_to_mat(step.double())
         return pose

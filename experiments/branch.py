@@ -1,7 +1,7 @@
 """Branch a training run at one of its checkpoints with some settings changed.
 
     python experiments/branch.py experiments/out/default-120/checkpoints/step_0008000.pt \
-        experiments/out/NEW model.align_distill=0.2 model.align_distill_start=8000
+        experiments/out/NEW loss.ssim_weight=0.5
     experiments/run.sh NEW --minutes 43.2     # resumes the branch for the rest of the budget
 
 A setting that only takes effect from a step after the checkpoint's (e.g. a loss term switched on at that

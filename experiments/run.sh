@@ -9,7 +9,7 @@
 #   experiments/run.sh improved-60 --minutes 60
 #   experiments/run.sh nowrap --max-steps 7168 --no-wrap
 #   experiments/run.sh paper --max-steps 1945 --preset paper-synthia
-#   experiments/run.sh equivariant-roll --max-steps 1945 --no-antisymmetric --pose-head equivariant --roll
+#   experiments/run.sh equivariant --max-steps 1945 --no-antisymmetric --pose-head equivariant
 #
 # A run that already exists is resumed (--resume) for the new budget, e.g. another 60 minutes:
 #

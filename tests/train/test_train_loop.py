@@ -109,6 +109,34 @@ def test_resume_continues_exactly(tiny_data, tmp_path):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
 
 
+def test_a_training_checkpoint_of_the_one_class_pose_network_resumes_exactly(tiny_data, tmp_path):
+    """A training checkpoint in the layout of the pose network before its parts (keys ``encoder.N.0.*``,
+    ``pose_pred.*``, the scaffold's ``slot_prior`` inside the network) resumes to the weights of a run in one
+    go: the keys map, the prior moves to the scaffold, and the optimiser's moments stay with their
+    parameters (the parameters keep their order)."""
+    import re
+
+    fade = {"model.prior_fade_start": 2, "model.prior_fade_end": 5}
+    train(_cfg(tiny_data, max_steps=5, **fade), tmp_path / "straight", progress=False)
+    with pytest.warns(UserWarning, match="faded out"):
+        train(_cfg(tiny_data, max_steps=3, **fade), tmp_path / "old", progress=False)
+    ckpt = tmp_path / "old" / "checkpoints" / "latest.pt"
+    state = load_checkpoint(ckpt)
+    old = {}
+    for key, value in state["pose_net"].items():
+        key = re.sub(r"^net\.pair\.encoder\.convs\.(\d+)\.", r"encoder.\1.0.", key)
+        old[key.replace("net.pair.head.conv.", "pose_pred.")] = value
+    old["slot_prior"] = state.pop("scaffold")["slot_prior"]
+    assert "pose_pred.weight" in old and "encoder.6.0.bias" in old
+    state["pose_net"] = old
+    del state["path"], state["format"]
+    save_checkpoint(ckpt, state)
+    train(_cfg(tiny_data, max_steps=5, **fade), tmp_path / "old", resume=True, progress=False)
+    a, b = _weights(tmp_path / "straight"), _weights(tmp_path / "old")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+
+
 def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(tiny_data, tmp_path, monkeypatch):
     run = tmp_path / "run"
     train(_cfg(tiny_data, max_steps=2), run, progress=False)

@@ -130,7 +130,8 @@ def _train(data: Path, run: Path, width: int, height: int, minutes: float, seed:
         [f"data.root='{data}'", f"data.width={width}", f"data.height={height}", f"minutes={minutes}",
          f"seed={seed}", "max_steps=1000000", "checkpoint_every=0"],
     )  # fmt: skip
-    summary = train(cfg, run, resume=(run / "checkpoints" / "latest.pt").exists(), progress=progress)
+    resume = (run / "checkpoints" / "latest.pt").exists()  # a demo stopped before: continued
+    summary = train(cfg, run, resume=resume, progress=progress, overwrite=not resume)
     return cfg, summary
 
 

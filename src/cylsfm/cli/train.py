@@ -87,6 +87,12 @@ def _train_args(p: argparse.ArgumentParser) -> None:
         help="continue the run in --out from its latest checkpoint, with the settings in OUT/config.yaml "
         "(flags and key=value change them: e.g. a new --max-steps or --minutes)",
     )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="start the run in --out again: its checkpoints, metrics.jsonl and tb/ are removed (without it "
+        "a run already there is refused; --resume continues it)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--print-config",
@@ -140,7 +146,11 @@ def run_train(args: argparse.Namespace) -> int:
         return 0
     if not cfg.data.root and not args.resume:
         raise CylsfmError("no training data: pass --data ROOT (or data.root in --config)")
-    summary = train(cfg, args.out, resume=args.resume, progress=not args.no_progress)
+    if args.resume and args.overwrite:
+        raise CylsfmError("--resume continues a run and --overwrite starts it again: give one")
+    summary = train(
+        cfg, args.out, resume=args.resume, progress=not args.no_progress, overwrite=args.overwrite
+    )
     print(
         f"trained to step {summary['steps']} ({summary['stopped']}) in {summary['seconds'] / 60:.1f} min; "
         f"checkpoints in {args.out}/checkpoints"

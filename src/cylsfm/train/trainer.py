@@ -18,6 +18,8 @@ import json
 import math
 import os
 import random
+import shutil
+import sys
 import time
 import warnings
 from dataclasses import replace
@@ -43,8 +45,13 @@ from .objective import Objective, SfMNet, batch_on
 from .rng import restore_rng, rng_state
 from .sampler import ResumableSampler, SeededDataset
 from .scaffold import SlotPriorScaffold
+from .stopping import CONTINUE, NON_FINITE, OUT_OF_TIME, SIGNALLED, StopRequests, agree
 
 __all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "train"]
+
+
+#: What a run writes into its directory: an existing one means the directory holds a run.
+_RUN_OUTPUTS = ("checkpoints", "metrics.jsonl", "tb")
 
 
 class NonFiniteLossError(CylsfmError):
@@ -54,10 +61,14 @@ class NonFiniteLossError(CylsfmError):
 class Trainer:
     """Trains the networks of ``cfg`` into ``run_dir`` (see the module docstring)."""
 
-    def __init__(self, cfg: TrainConfig, run_dir: str | os.PathLike[str], resume: bool = False) -> None:
+    def __init__(
+        self, cfg: TrainConfig, run_dir: str | os.PathLike[str], resume: bool = False, overwrite: bool = False
+    ) -> None:
         self.run_dir = Path(run_dir)
         self.dist, self.device = init_distributed(cfg.device)
         state = None
+        if not resume:
+            self._start_afresh(overwrite)
         if resume:
             ckpt = self.run_dir / "checkpoints" / "latest.pt"
             if not ckpt.exists():
@@ -147,6 +158,23 @@ class Trainer:
             cache=d.cache,
         )
 
+    def _start_afresh(self, overwrite: bool) -> None:
+        """Refuse to train over an existing run (its checkpoints and logs) unless asked to start it over;
+        then its outputs are removed (by the first process), saying which."""
+        done = [p for p in _RUN_OUTPUTS if (self.run_dir / p).exists()]
+        if not done:
+            return
+        if not overwrite:
+            raise CylsfmError(
+                f"{self.run_dir}: already holds a run ({', '.join(done)}): --resume continues it, --overwrite "
+                "starts it again (replacing those)"
+            )
+        if self.dist.main:
+            for name in done:
+                path = self.run_dir / name
+                shutil.rmtree(path) if path.is_dir() else path.unlink()
+            print(f"{self.run_dir}: removed {', '.join(done)} of the run started over", file=sys.stderr)
+
     def _vfov_h(self) -> float | None:
         """The vertical extent ``h`` in ``[-vfov_h, vfov_h]`` of the training panoramas (``None``: not
         cylindrical), recorded so that images given to the network later are fitted to it."""
@@ -215,11 +243,13 @@ class Trainer:
     def train_step(self, batch: dict[str, Any]) -> tuple[dict[str, float], dict[str, Tensor]]:
         self.net.train()
         total, terms, visuals = self.compute_loss(batch)
-        if not torch.isfinite(total):
+        finite = bool(torch.isfinite(total))
+        if agree(CONTINUE if finite else NON_FINITE, self.dist.world, self.device) == NON_FINITE:
+            values = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in terms.items())
             raise NonFiniteLossError(
                 f"non-finite loss at step {self.step + 1} "
-                f"({', '.join(f'{k}={float(v.detach()):.4g}' for k, v in terms.items())}); the last good checkpoint "
-                f"is kept in {self.run_dir / 'checkpoints'}"
+                f"({values if not finite else 'in another process'}); the last good checkpoint is kept in "
+                f"{self.run_dir / 'checkpoints'}"
             )
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(total).backward()
@@ -316,22 +346,36 @@ class Trainer:
         deadline = t0 + cfg.minutes * 60 if cfg.minutes else math.inf
         bar = _Progress(cfg, self.step, progress and self.dist.main)
         self._last_log, self._samples_since = time.monotonic(), 0
-        stopped = "max_steps"
+        stopped, stops = "max_steps", StopRequests()
         try:
-            for batch in self._loader():
-                if self.step >= cfg.max_steps:
-                    break
-                if time.monotonic() >= deadline:
-                    stopped = "minutes"
-                    break
-                scalars, visuals = self.train_step(batch)
-                self._after_step(scalars, visuals)
-                bar.update(self.step, scalars["total"])
-        except KeyboardInterrupt:
+            with stops.installed():
+                for batch in self._loader():
+                    if self.step >= cfg.max_steps:
+                        break
+                    mine = (
+                        SIGNALLED
+                        if stops.signal
+                        else OUT_OF_TIME
+                        if time.monotonic() >= deadline
+                        else CONTINUE
+                    )
+                    verdict = agree(mine, self.dist.world, self.device)  # every process stops at this step
+                    if verdict != CONTINUE:
+                        stopped = "minutes" if verdict == OUT_OF_TIME else "interrupted"
+                        break
+                    scalars, visuals = self.train_step(batch)
+                    self._after_step(scalars, visuals)
+                    bar.update(self.step, scalars["total"])
+        except KeyboardInterrupt:  # a second Ctrl-C: at once, within the step
             stopped = "interrupted"
-            warnings.warn(f"interrupted at step {self.step}; saving a checkpoint", stacklevel=1)
         finally:
             bar.close()
+        if stopped == "interrupted" and self.dist.main:
+            why = stops.signal or "a signal to another process"
+            warnings.warn(
+                f"stopped by {why} at step {self.step}; saving a checkpoint (--resume continues)",
+                stacklevel=1,
+            )
         if stopped != "max_steps" or self.step > start_step:
             self.save(keep=False)
         if self.writer:
@@ -397,10 +441,16 @@ class _Progress:
 
 
 def train(
-    cfg: TrainConfig, run_dir: str | os.PathLike[str], resume: bool = False, progress: bool = True
+    cfg: TrainConfig,
+    run_dir: str | os.PathLike[str],
+    resume: bool = False,
+    progress: bool = True,
+    overwrite: bool = False,
 ) -> dict:
-    """Build a :class:`Trainer` and run it (closing TensorBoard and the process group afterwards)."""
-    trainer = Trainer(cfg, run_dir, resume=resume)
+    """Build a :class:`Trainer` and run it (closing TensorBoard and the process group afterwards).
+    ``resume`` continues the run in ``run_dir``; without it a run already there is refused unless
+    ``overwrite`` starts it again."""
+    trainer = Trainer(cfg, run_dir, resume=resume, overwrite=overwrite)
     try:
         return trainer.fit(progress=progress)
     finally:

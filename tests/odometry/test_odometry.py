@@ -187,3 +187,37 @@ def test_keyframe_steps_undo_the_keyframe_composition():
             t = steps[i] @ t
         rel.append(t)
     np.testing.assert_allclose(keyframe_steps(np.stack(rel), every), steps, atol=1e-12)
+
+
+def test_sigterm_stops_odometry_like_ctrl_c_and_the_run_continues(ckpt, ride, tmp_path, monkeypatch, capsys):
+    """SIGTERM (a scheduler preempting the job) delivered after two chunks: the command says so and exits
+    with 143, the state on disk is the two chunks', and the same command then writes the trajectory of an
+    uninterrupted run."""
+    import os
+    import signal
+
+    from cylsfm.data.io import read_tum
+
+    monkeypatch.setattr(odometry_run, "CHUNK", 3)
+    args = ["odometry", str(ride), "--checkpoint", str(ckpt), "--refine", "--device", "cpu", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "whole")]) == 0
+    push, calls = Tracker.push, {"n": 0}
+
+    def signalled_push(self, indices, images):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return push(self, indices, images)
+
+    monkeypatch.setattr(Tracker, "push", signalled_push)
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "cut")]) == 143
+    assert "interrupted by SIGTERM" in capsys.readouterr().err
+    assert not (tmp_path / "cut" / "trajectory.txt").exists()
+    with np.load(tmp_path / "cut" / odometry_run.STATE_FILE) as saved:
+        assert len(saved["stems"]) == 6 and not bool(saved["finished"])
+    monkeypatch.setattr(Tracker, "push", push)
+    assert main([*args, "--out", str(tmp_path / "cut")]) == 0
+    whole = read_tum(tmp_path / "whole" / "trajectory.txt")
+    cut = read_tum(tmp_path / "cut" / "trajectory.txt")
+    np.testing.assert_allclose(cut[1], whole[1], atol=1e-6)

@@ -10,7 +10,11 @@ exit status 2, never as a traceback.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from .._version import __version__
 from ..errors import CylsfmError
@@ -40,18 +44,44 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler preempting the job): handled as Ctrl-C is."""
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block SIGTERM interrupts like Ctrl-C: every command stops the way it stops for Ctrl-C
+    (its outputs consistent on disk, resumable where the command resumes). ``cylsfm train`` installs its
+    own handler while it trains (a checkpoint at the step in progress)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run ``cylsfm ARGS``; returns the exit status (0, 2 for bad input, 130 when interrupted)."""
+    """Run ``cylsfm ARGS``; returns the exit status (0, 2 for bad input, 130 when interrupted by Ctrl-C,
+    143 by SIGTERM)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):
         parser.print_help()
         return 0
     try:
-        return int(args._run(args) or 0)
+        with _sigterm_as_interrupt():
+            return int(args._run(args) or 0)
     except CylsfmError as exc:
         print(f"cylsfm {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"cylsfm {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        by = "SIGTERM" if isinstance(exc, Terminated) else "Ctrl-C"
+        print(f"cylsfm {args.command}: interrupted by {by}; what was written is kept", file=sys.stderr)
+        return 143 if isinstance(exc, Terminated) else 130

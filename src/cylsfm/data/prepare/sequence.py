@@ -71,6 +71,11 @@ class PreparedSequence:
             raise CylsfmError(
                 f"{self.path}: holds a sequence that cylsfm prepare did not write; --overwrite replaces it"
             )
+        if (
+            not record.is_file()
+        ):  # claimed before the first frame: an interrupted run is continued, not refused
+            self.path.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(record, json.dumps(self.record, indent=2) + "\n")
         (self.path / "images").mkdir(parents=True, exist_ok=True)
         self.done = {p.stem for p in (self.path / "images").iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
         self._writer: ThreadPoolExecutor | None = None

@@ -13,6 +13,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
 
+from .errors import CylsfmError
+
 __all__ = ["atomic_open", "atomic_write_bytes", "atomic_write_text"]
 
 
@@ -21,18 +23,30 @@ def atomic_open(path: str | os.PathLike[str]) -> Iterator[IO[bytes]]:
     """A binary file handle whose content replaces ``path`` only when the block ends without error.
 
     The parent directory is created when missing. On an exception the temporary file is removed and
-    ``path`` keeps its previous content.
+    ``path`` keeps its previous content; a file-system error (a full disk, a read-only directory) becomes
+    a :class:`~cylsfm.errors.CylsfmError` naming ``path``.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise _cannot_write(path, exc) from None
     try:
         with os.fdopen(fd, "wb") as fh:
             yield fh
         os.replace(tmp, path)
+    except OSError as exc:  # a full disk, a read-only or vanished directory: one line, the old file kept
+        Path(tmp).unlink(missing_ok=True)
+        raise _cannot_write(path, exc) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _cannot_write(path: Path, exc: OSError) -> CylsfmError:
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    return CylsfmError(f"{path}: cannot write ({reason}); a previous {path.name} is kept as it was")
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:

@@ -10,6 +10,7 @@ not continued, the run starts over.
 from __future__ import annotations
 
 import io
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -99,6 +100,6 @@ class State:
                 state.rescaled = int(z["rescaled"])
                 yaw, agreement, pairs = (float(v) for v in z["mount"])
                 state.mount = (yaw, agreement, int(pairs))
-        except (OSError, ValueError, KeyError):
-            return None  # unreadable or from another version: start over
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            return None  # unreadable (empty, cut off, not an archive) or from another version: start over
         return state

@@ -96,3 +96,38 @@ def test_data_parallel_processes_agree_when_the_budget_ends(tiny_data, tmp_path)
     steps = _steps(run)
     assert 0 < steps[-1] < 100000 and load_checkpoint(run)["step"] == steps[-1]
     assert time.monotonic() - start < 150
+
+
+NAN_ON_RANK_1 = """
+import os, sys
+if os.environ.get("RANK") == "1":  # this process's loss becomes NaN at its third step
+    from cylsfm.train import objective
+    _call, _n = objective.Objective.__call__, [0]
+
+    def nan_at_three(self, batch, outputs):
+        total, terms, visuals = _call(self, batch, outputs)
+        _n[0] += 1
+        return (total * float("nan") if _n[0] == 3 else total), terms, visuals
+
+    objective.Objective.__call__ = nan_at_three
+from cylsfm.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_non_finite_loss_in_one_process_stops_them_all(tiny_data, tmp_path):
+    """torchrun, 2 gloo processes, a NaN loss in the second only: both stop with the message (no process
+    waits for the other in a gradient all-reduce) and the last good checkpoint is kept."""
+    script = tmp_path / "nan.py"
+    script.write_text(NAN_ON_RANK_1)
+    run = tmp_path / "ddp"
+    cmd = [
+        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29575",
+        str(script), "train", "--data", str(tiny_data), "--out", str(run), "--max-steps", "100",
+        *(a.replace("latest_every=1000", "latest_every=1") for a in ARGS),
+    ]  # fmt: skip
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(sys.path))
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=180, env=env)
+    assert out.returncode != 0
+    assert "non-finite loss at step 3" in out.stderr and "in another process" in out.stderr
+    assert load_checkpoint(run)["step"] == 2

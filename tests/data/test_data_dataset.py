@@ -347,3 +347,27 @@ def test_dataloader_with_workers(tmp_path):
         assert cam.wraps and cam.fx.shape == (batch["target"].shape[0],)
         seen += batch["index"].tolist()
     assert sorted(seen) == list(range(len(ds))) == list(range(8))
+
+
+def test_an_extra_mask_is_in_every_sample_and_follows_the_mirror(tmp_path):
+    """The mask of ``train --mask`` (a helmet at one azimuth): multiplied with each sequence's own mask,
+    mirrored with a mirrored sample; a mask of another aspect ratio is refused, naming the file."""
+    write_seq(tmp_path / "a", n=4, mask=True)  # its own mask: the left half
+    write_seq(tmp_path / "b", n=4, seed=1)
+    helmet = np.full((H * 2, W * 2), 255, np.uint8)
+    helmet[:, : W // 2] = 0  # the leftmost quarter is the helmet
+    Image.fromarray(helmet).save(tmp_path / "helmet.png")
+    plain = SequenceDataset(tmp_path, mask=tmp_path / "helmet.png")
+    want = torch.ones(1, H, W)
+    want[..., : W // 4] = 0
+    seqs = [plain.sequences[int(plain._seq_idx[i])].name for i in range(len(plain))]
+    a, b = plain[seqs.index("a")]["mask"], plain[seqs.index("b")]["mask"]
+    torch.testing.assert_close(b, want)
+    torch.testing.assert_close(a, want * (torch.arange(W) < W // 2).float())  # with the sequence's own
+    mirrored = SequenceDataset(
+        tmp_path, mask=tmp_path / "helmet.png", augment=AugmentConfig(mirror_prob=1.0, color_jitter=False)
+    )
+    torch.testing.assert_close(mirrored[seqs.index("b")]["mask"], want.flip(-1))
+    Image.fromarray(np.full((H, 2 * H), 255, np.uint8)).save(tmp_path / "equirect.png")
+    with pytest.raises(DatasetError, match=r"equirect\.png: a .* mask for .* panoramas"):
+        SequenceDataset(tmp_path, mask=tmp_path / "equirect.png")

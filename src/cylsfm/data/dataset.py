@@ -14,9 +14,10 @@ from typing import Any
 
 import numpy as np
 import torch
+from PIL import Image
 from torch.utils.data import Dataset
 
-from ..errors import InputError
+from ..errors import InputError, reading
 from ..geometry import Camera, relative_pose
 from .augment import AugmentConfig
 from .cache import FrameCache, available_memory_bytes
@@ -87,6 +88,10 @@ class SequenceDataset(Dataset):
         cache: decode every frame of the samples once, up front, and keep it in memory as ``uint8``
             (:class:`~cylsfm.data.cache.FrameCache`); samples are then the same as without it, faster.
             ``"auto"``: only when the frames take at most a quarter of the memory still available.
+        mask: an image of the pixels to use in every sequence (white), e.g. without a helmet seen in every
+            frame, of the panoramas' aspect ratio (resampled to their size): it multiplies each sequence's
+            own ``mask.png`` and, being part of each sample, follows the augmentation (a mirrored sample has
+            a mirrored mask).
 
     Raises:
         DatasetError: naming the file, for any invalid input (see :func:`scan_dataset`); at load time for a
@@ -108,6 +113,7 @@ class SequenceDataset(Dataset):
         skip_bad: bool = False,
         load_ground_truth: bool = True,
         cache: bool | str = False,
+        mask: str | os.PathLike[str] | None = None,
     ) -> None:
         check_snippet_args(seq_length, stride)
         self.root = Path(root)
@@ -137,7 +143,9 @@ class SequenceDataset(Dataset):
         used_seqs = [self.sequences[s] for s in used]
         self.has_depth = load_ground_truth and any(s.depths is not None for s in used_seqs)
         self.has_pose = load_ground_truth and bool(used_seqs) and all(s.poses is not None for s in used_seqs)
-        self.has_mask = any(s.mask is not None for s in used_seqs)
+        self.extra_mask = Path(mask) if mask is not None else None
+        self._check_extra_mask(used)
+        self.has_mask = self.extra_mask is not None or any(s.mask is not None for s in used_seqs)
         # found at load time (per process): frames that fail to decode ((seq, -1): the mask), and
         # targets whose depth map is bad
         self._bad_frames: set[tuple[int, int]] = set()
@@ -330,8 +338,26 @@ class SequenceDataset(Dataset):
             self._bad_targets.add((s, tgt))
             raise
 
+    def _check_extra_mask(self, used: list[int]) -> None:
+        """The extra mask must have the panoramas' aspect ratio (it is resampled to their size, never
+        squashed): an equirectangular mask of a cylinder is refused."""
+        if self.extra_mask is None:
+            return
+        with reading(self.extra_mask, DatasetError):
+            with Image.open(self.extra_mask) as im:
+                mw, mh = im.size
+        for s in used:
+            cam = self.cameras[s]
+            if abs(mw * cam.height - mh * cam.width) > 0.01 * mh * cam.width:
+                raise DatasetError(
+                    f"{self.extra_mask}: a {mw}x{mh} mask for {cam.width}x{cam.height} panoramas "
+                    f"({self.sequences[s].name}): give a mask of the panoramas' size or aspect ratio "
+                    "(cylsfm prepare --mask converts an equirectangular one)"
+                )
+
     def _sequence_mask(self, s: int, size: tuple[int, int] | None) -> np.ndarray:
-        """``float32 [H,W]`` mask of sequence ``s`` (cached); all ones where it has none."""
+        """``float32 [H,W]`` mask of sequence ``s`` (cached): its own ``mask.png`` times the dataset's extra
+        mask; all ones where there is neither."""
         mask = self._mask_cache.get(s)
         if mask is not None:
             return mask
@@ -344,5 +370,7 @@ class SequenceDataset(Dataset):
             except DatasetError:
                 self._bad_frames.add((s, -1))
                 raise
+        if self.extra_mask is not None:
+            mask = mask * load_mask(self.extra_mask, (camera.width, camera.height))
         self._mask_cache[s] = mask
         return mask

@@ -39,18 +39,13 @@ class Batch:
     mask: Tensor | None
 
 
-def batch_on(
-    sample: dict[str, Any], device: torch.device, static_mask: Tensor | None, fov: float, channels_last: bool
-) -> Batch:
-    """A loader's collated ``sample`` on ``device``, cropped to the centred ``fov`` degrees, with the
-    ``static_mask`` ``[1,1,H,W]`` times the samples' own masks."""
+def batch_on(sample: dict[str, Any], device: torch.device, fov: float, channels_last: bool) -> Batch:
+    """A loader's collated ``sample`` on ``device``, cropped to the centred ``fov`` degrees (the samples'
+    masks, augmented with them, included)."""
     tgt = sample["target"].to(device, non_blocking=True)
     src = sample["sources"].to(device, non_blocking=True)
     cam = camera_of(sample)
-    mask = static_mask
-    if "mask" in sample:
-        m = sample["mask"].to(device)
-        mask = m if mask is None else mask * m
+    mask = sample["mask"].to(device) if "mask" in sample else None
     if fov < 360:
         x0, x1 = cam.index(0).crop_window(fov)
         cam = cam.crop(fov)

@@ -29,11 +29,9 @@ from typing import Any
 import numpy as np
 import torch
 import torch.distributed as dist
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..data.dataset import AugmentConfig, SequenceDataset, StaticFilter, camera_of
-from ..data.format import load_mask
 from ..data.strips import StripDataset, is_strip_dataset
 from ..errors import CylsfmError
 from ..model.build import build_models, upgrade_pose_state
@@ -87,7 +85,11 @@ class Trainer:
                 f"{cfg.data.root}: only {len(self.dataset)} training samples for batch size {cfg.batch_size}"
                 f" x {self.dist.world} process(es)"
             )
-        self.static_mask = self._load_static_mask()
+        if cfg.data.mask and isinstance(self.dataset, StripDataset):
+            raise CylsfmError(
+                f"{cfg.data.mask}: --mask needs a dataset of format v1 (cylsfm prepare); the strips of the "
+                "original SfMLearner code carry no masks"
+            )
         if cfg.data.vfov_h is None:  # what the network will expect of panoramas given to it later
             cfg = self.cfg = replace(cfg, data=replace(cfg.data, vfov_h=self._vfov_h()))
 
@@ -156,6 +158,7 @@ class Trainer:
             static=StaticFilter(d.static_filter, d.min_translation, d.min_image_diff),
             load_ground_truth=False,  # self-supervised: depth and poses are never read
             cache=d.cache,
+            mask=d.mask,  # in every sample, so that it follows the mirror
         )
 
     def _start_afresh(self, overwrite: bool) -> None:
@@ -203,13 +206,6 @@ class Trainer:
         np.random.seed(seed % 2**32)  # noqa: NPY002 - third-party code may draw from the global state
         torch.manual_seed(seed)
 
-    def _load_static_mask(self) -> Tensor | None:
-        if not self.cfg.data.mask:
-            return None
-        m = torch.from_numpy(load_mask(self.cfg.data.mask))[None, None]
-        m = F.interpolate(m, size=(self.cfg.data.height, self.cfg.data.width), mode="area")
-        return m.to(self.device)
-
     def _loader(self) -> torch.utils.data.DataLoader:
         consumed = self.step * self.cfg.batch_size
         sampler = ResumableSampler(
@@ -233,7 +229,7 @@ class Trainer:
     # ------------------------------------------------------------------ one step
     def compute_loss(self, sample: dict[str, Any]) -> tuple[Tensor, dict[str, Tensor], dict[str, Any]]:
         """The networks on one loader batch and every loss term (see :mod:`cylsfm.train.objective`)."""
-        batch = batch_on(sample, self.device, self.static_mask, self.cfg.data.fov, self.channels_last)
+        batch = batch_on(sample, self.device, self.cfg.data.fov, self.channels_last)
         with torch.autocast(
             self.device.type, dtype=self.amp_dtype or torch.float32, enabled=self.amp_dtype is not None
         ):

@@ -42,14 +42,21 @@ def _named(exc: CylsfmError, path: Path) -> None:
     assert str(path) in str(exc) or path.name in str(exc), str(exc)
 
 
+def _reads_or_names(read, path: Path, *args, **kwargs):
+    """``read(path, ...)``'s result, or ``None`` after checking that its error is the project's, naming
+    ``path``; any other exception fails the test."""
+    try:
+        return read(path, *args, **kwargs)
+    except CylsfmError as exc:
+        _named(exc, path)
+        return None
+
+
 @FUZZ
 @given(content=st.one_of(junk, json_values.map(json.dumps), camera_like.map(json.dumps)))
 def test_camera_json(tmp_path, content):
     path = _write(tmp_path / "camera.json", content)
-    try:
-        load_camera(path)
-    except CylsfmError as exc:
-        _named(exc, path)
+    _reads_or_names(load_camera, path)
 
 
 @FUZZ
@@ -100,7 +107,13 @@ def test_split_files_never_leave_the_root(tmp_path, lines):
 
 
 @FUZZ
-@given(content=st.one_of(junk, json_values.map(json.dumps), st.just("preset: default\nmodel: [1, 2]\n")))
+@given(
+    content=st.one_of(
+        junk,
+        json_values.map(json.dumps),
+        st.sampled_from(["preset: default\nmodel: [1, 2]\n", "0:\n", "data: {1: 2}\n"]),
+    )
+)
 def test_config_yaml(tmp_path, content):
     path = _write(tmp_path / "config.yaml", content)
     for saved in (False, True):
@@ -114,10 +127,7 @@ def test_config_yaml(tmp_path, content):
 @given(content=st.one_of(junk, json_values.map(json.dumps)))
 def test_rig_json(tmp_path, content):
     path = _write(tmp_path / "rig.json", content)
-    try:
-        load_rig(path)
-    except CylsfmError as exc:
-        _named(exc, path)
+    _reads_or_names(load_rig, path)
 
 
 @FUZZ

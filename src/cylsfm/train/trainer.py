@@ -45,15 +45,28 @@ from .sampler import ResumableSampler, SeededDataset
 from .scaffold import SlotPriorScaffold
 from .stopping import CONTINUE, NON_FINITE, OUT_OF_TIME, SIGNALLED, StopRequests, agree
 
-__all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "train"]
+__all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "autocast_dtype", "train"]
 
 
 #: What a run writes into its directory: an existing one means the directory holds a run.
 _RUN_OUTPUTS = ("checkpoints", "metrics.jsonl", "tb")
 
 
+#: fp16 steps with overflowing gradients in a row after which training stops (the scaler halves its scale
+#: at each, so this many means the overflow is not the scale's).
+_MAX_SKIPPED_IN_A_ROW = 50
+
+
 class NonFiniteLossError(CylsfmError):
-    """The loss became NaN or infinite; the last good checkpoint is kept."""
+    """The loss or the gradients became NaN or infinite; the last good checkpoint is kept."""
+
+
+def autocast_dtype(device: torch.device, amp: bool) -> torch.dtype | None:
+    """The dtype the networks run in under ``amp`` on ``device`` (None: fp32): on CUDA bf16 where the GPU
+    has it, else fp16 (whose overflowing steps the gradient scaler skips); fp32 elsewhere."""
+    if amp and device.type == "cuda":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    return None
 
 
 class Trainer:
@@ -120,10 +133,11 @@ class Trainer:
             weight_decay=cfg.optim.weight_decay,
             fused=fused,
         )
-        self.amp_dtype = None
-        if cfg.amp and self.device.type == "cuda":
-            self.amp_dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
-        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype == torch.float16)
+        self.amp_dtype = autocast_dtype(self.device, cfg.amp)
+        # fp16 only: the loss is scaled and a step whose gradients overflowed is skipped (and counted)
+        self.scaler = torch.amp.GradScaler(self.device.type, enabled=self.amp_dtype == torch.float16)
+        self.skipped = 0  # steps skipped for overflowing fp16 gradients, over the whole run
+        self._skipped_in_a_row = 0
         if state is not None:
             self._restore(state)
         self.net: nn.Module = self.model
@@ -249,14 +263,44 @@ class Trainer:
             )
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(total).backward()
-        self.scaler.step(self.optimizer)
+        self.scaler.unscale_(self.optimizer)  # (a no-op without fp16)
+        grad_norm = float(self._grad_norm())  # the same in every process: DDP averaged the gradients
+        if not math.isfinite(grad_norm):
+            self._overflowed(grad_norm, terms)
+        else:
+            self._skipped_in_a_row = 0
+        self.scaler.step(self.optimizer)  # with fp16, skips the update when the gradients overflowed
         self.scaler.update()
         self.step += 1
         scalars = {k: float(v.detach()) for k, v in terms.items()}
+        scalars["grad_norm"] = grad_norm
+        if self.scaler.is_enabled():
+            scalars["skipped_steps"] = float(self.skipped)
+            scalars["loss_scale"] = float(self.scaler.get_scale())
         scalars["translation_norm"] = float(visuals.pop("translation_norm"))
         if self.scaffold is not None:
             scalars["prior_weight"] = self.scaffold.weight_at(self.step - 1)
         return scalars, visuals
+
+    def _grad_norm(self) -> Tensor:
+        """The L2 norm of every parameter's gradient together (inf or NaN when one is not finite)."""
+        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+        return torch.nn.utils.get_total_norm(grads) if grads else torch.zeros(())
+
+    def _overflowed(self, grad_norm: float, terms: dict[str, Tensor]) -> None:
+        """A non-finite gradient: with fp16 the scaler skips the step (stopping only after
+        ``_MAX_SKIPPED_IN_A_ROW`` such steps in a row); in fp32 or bf16 training stops before the
+        optimiser writes it into the weights, so the last checkpoint stays good."""
+        self._skipped_in_a_row += 1
+        if self.scaler.is_enabled() and self._skipped_in_a_row < _MAX_SKIPPED_IN_A_ROW:
+            self.skipped += 1
+            return
+        values = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in terms.items())
+        why = f"{self._skipped_in_a_row} fp16 steps in a row" if self.scaler.is_enabled() else "a step"
+        raise NonFiniteLossError(
+            f"non-finite gradients (norm {grad_norm}) in {why} at step {self.step + 1} ({values}); the "
+            f"weights were not updated and the last good checkpoint is kept in {self.run_dir / 'checkpoints'}"
+        )
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict[str, Any]:
@@ -268,6 +312,7 @@ class Trainer:
             **({"scaffold": self.scaffold.state_dict()} if self.scaffold is not None else {}),
             "optimizer": self.optimizer.state_dict(),
             "scaler": self.scaler.state_dict(),
+            "skipped_steps": self.skipped,
             "rng": rng_state(),
             "sampler": {"consumed": self.step * self.cfg.batch_size, "seed": self.cfg.seed},
         }
@@ -285,6 +330,7 @@ class Trainer:
             self.optimizer.load_state_dict(state["optimizer"])
         if state.get("scaler"):
             self.scaler.load_state_dict(state["scaler"])
+        self.skipped = int(state.get("skipped_steps", 0))
         self.step = int(state["step"])
         restore_rng(state.get("rng") or {})
 

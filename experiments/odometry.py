@@ -9,7 +9,9 @@ VARIANT is one of ``refine`` (``cylsfm odometry --refine``), ``refine-kf5`` (``-
 ``true-depth`` (``--refine --depth-from`` the benchmark: the test of the refinement itself) and
 ``rolled`` / ``rolled-kf5`` (the rides with every frame rolled by a random yaw, as a camera mounted turned;
 ground truth turned with them), ``refine-ahead`` / ``rolled-ahead`` (``--mount-yaw 0``: the pose network
-reads the frames as they are, the direction of travel not looked for). Default: all. Each run writes ``OUT/VARIANT/SEQ/`` (the files of ``cylsfm
+reads the frames as they are, the direction of travel not looked for), ``helmet`` / ``helmet-nomask`` / ``roof`` /
+``roof-nomask`` (the rides with a synthetic occluder painted into every frame, ``cylsfm synth --occluder``:
+with the sequence's mask.png, and with ``--no-mask``). Default: all. Each run writes ``OUT/VARIANT/SEQ/`` (the files of ``cylsfm
 odometry``); the table (per variant: the trajectory, the pose network alone, the visual compass, constant
 velocity, zero motion; mean over the rides) is printed and saved as ``OUT/table.json``.
 
@@ -27,6 +29,7 @@ import numpy as np
 import cylsfm
 from cylsfm.data import read_split, scan_dataset
 from cylsfm.data.format import SequenceWriter, load_depth, load_image
+from cylsfm.data.synth.occluder import occluder_mask, occluder_texture
 from cylsfm.geometry import roll_columns, roll_pose
 from cylsfm.odometry import OdometrySettings
 
@@ -39,6 +42,10 @@ VARIANTS = {
     "rolled-kf5": {"refine": True, "keyframe_every": 5, "rolled": True},
     "refine-ahead": {"refine": True, "mount_yaw": 0.0},
     "rolled-ahead": {"refine": True, "mount_yaw": 0.0, "rolled": True},
+    "helmet": {"refine": True, "occluder": "helmet"},
+    "helmet-nomask": {"refine": True, "occluder": "helmet", "mask": False},
+    "roof": {"refine": True, "occluder": "roof"},
+    "roof-nomask": {"refine": True, "occluder": "roof", "mask": False},
 }
 MEASURES = ("ape_rmse", "rpe_trans_rmse", "rot_err_deg_mean", "rot_err_deg_turning", "dir_err_deg_mean")
 
@@ -66,14 +73,34 @@ def rolled_copy(name: str, out: Path, seed: int) -> Path:
     return writer.finish(poses, timestamps=seq.timestamps)
 
 
+def occluded_copy(name: str, out: Path, kind: str) -> Path:
+    """The ride with the synthetic occluder ``kind`` in every frame (no depth there) and its mask.png."""
+    dest = out / name
+    if (dest / "camera.json").is_file():
+        return dest
+    seq = {s.name: s for s in scan_dataset(DATA)}[name]
+    occ = occluder_mask(*seq.camera.size, kind)
+    texture = occluder_texture(*seq.camera.size)
+    writer = SequenceWriter(dest, seq.camera)
+    for i, img in enumerate(seq.images):
+        depth = seq.depth_path(i)
+        writer.add_frame(
+            np.where(occ[..., None], texture, load_image(img)),
+            np.where(occ, np.float32(0), load_depth(depth)) if depth else None,
+        )
+    return writer.finish(seq.poses, timestamps=seq.timestamps, mask=~occ)
+
+
 def run(checkpoint: str, out: Path, variants: list[str]) -> dict:
     table: dict = {}
     for variant in variants:
         opts = dict(VARIANTS[variant])
         rolled = opts.pop("rolled", False)
+        occluder = opts.pop("occluder", None)
         per_ride = []
         for n, name in enumerate(test_rides()):
             ride = rolled_copy(name, out / "rolled-data", seed=n) if rolled else DATA / name
+            ride = occluded_copy(name, out / f"{occluder}-data", occluder) if occluder else ride
             result = cylsfm.odometry(
                 ride, checkpoint, out / variant / name, OdometrySettings(progress=False, **opts)
             )

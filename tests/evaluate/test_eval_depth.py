@@ -354,7 +354,7 @@ class _ColumnPredictor:
     def window(self, camera):
         return None
 
-    def depth(self, images: torch.Tensor, camera) -> torch.Tensor:
+    def depth(self, images: torch.Tensor, camera, mask=None) -> torch.Tensor:
         if self.from_image:
             return 1.0 + 40.0 * images[:, :1].double()
         return torch.from_numpy(self.profile).expand(images.shape[0], 1, *self.profile.shape).clone()

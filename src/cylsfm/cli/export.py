@@ -21,6 +21,14 @@ def _depth_source(p: argparse.ArgumentParser) -> None:
         metavar="METRES",
         help="metric scale: the camera's height above a level ground (fitted below the horizon)",
     )
+    m = p.add_mutually_exclusive_group()
+    m.add_argument(
+        "--mask",
+        metavar="IMAGE",
+        help="white where the panorama sees the scene, black on the camera's own mount or helmet (same "
+        "aspect ratio): no geometry from it. Default: a dataset frame's sequence mask.png",
+    )
+    m.add_argument("--no-mask", action="store_true", help="use every pixel, even where mask.png says not to")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N (default auto)")
 
 
@@ -86,7 +94,8 @@ def run_export(args: argparse.Namespace) -> int:
 
     if args.action == "stereo" and _is_video(args.pano):
         return _stereo_video(args)
-    scene = load_scene(args.pano, args.depth, args.checkpoint, args.camera, args.device)
+    mask = False if args.no_mask else args.mask
+    scene = load_scene(args.pano, args.depth, args.checkpoint, args.camera, args.device, mask)
     if args.camera_height is not None and args.action != "stereo":
         scene = scene.to_metres(args.camera_height)
     if args.action == "mesh":
@@ -144,7 +153,7 @@ def _stereo_video(args: argparse.Namespace) -> int:
 
     if args.checkpoint is None:
         raise InputError(f"{args.pano}: stereo from a video needs --checkpoint (depth for every frame)")
-    scene_of = scene_function(args.pano, args.checkpoint, args.camera, args.device)
+    scene_of = scene_function(args.pano, args.checkpoint, args.camera, args.device, args.mask)
     path, note = export_stereo_video(
         args.pano, args.out, scene_of, _stereo_options(args), args.fps, not args.no_progress
     )

@@ -50,6 +50,15 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
         "ahead, 90: to the right, i.e. a camera mounted turned left); the pose network reads the frames "
         "turned to face the motion. Default auto: found from the first frames (full-panorama models)",
     )
+    m = p.add_mutually_exclusive_group()
+    m.add_argument(
+        "--mask",
+        metavar="IMAGE",
+        help="white where the frames see the scene, black on the camera's own mount or helmet (the frames' "
+        "geometry, any size of their aspect ratio): left out of the compass, --refine and the search for "
+        "the direction of travel. Default: a dataset sequence's own mask.png",
+    )
+    m.add_argument("--no-mask", action="store_true", help="use every pixel, even where mask.png says not to")
     p.add_argument("--depth", action="store_true", help="also write every frame's depth: OUT/depth/FRAME.npy")
     p.add_argument("--fps", type=float, help="take about N frames a second from a video (default: all)")
     p.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
@@ -110,6 +119,7 @@ def run_odometry(args: argparse.Namespace) -> int:
         device=args.device,
         progress=not args.no_progress,
         pose_iterations=args.pose_iterations,
+        mask=False if args.no_mask else args.mask,
     )
     result = odometry(args.input, args.checkpoint, args.out, settings)
     n = len(result.c2w)

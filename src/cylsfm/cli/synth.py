@@ -54,6 +54,14 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
         "with the sequences of OUT in these proportions (default 8,1,1; 'none': no split files)",
     )
     p.add_argument(
+        "--occluder",
+        choices=["none", "helmet", "roof"],
+        default="none",
+        help="an object fixed to the camera, the same texture in the same pixels of every frame (helmet: a "
+        "rider's head and shoulders and a mounting pole, 18%% of the panorama; roof: a car's roof, 35%%), "
+        "with no ground-truth depth, and each sequence's mask.png leaving it out",
+    )
+    p.add_argument(
         "--overwrite", action="store_true", help="replace sequences (and the split) that already exist in OUT"
     )
 
@@ -82,6 +90,7 @@ def run_synth(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         splits=args.split is not None,
         split_fractions=args.split or (0.8, 0.1, 0.1),
+        occluder=args.occluder,
     )
     n = args.sequences * args.frames
     dt = time.monotonic() - t0

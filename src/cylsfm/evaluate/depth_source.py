@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from ..data import DatasetError, SequenceInfo, load_depth
 from ..geometry import roll_columns
@@ -88,7 +89,13 @@ class DepthSource:
                 masks,
                 camera.wraps,
             )
-        preds = list(self.predictor.depth(loaded, camera)[:, 0].double().cpu().numpy())
+        mask = None  # the occluder fixed to the camera, filled in what the network sees
+        if any(m is not None for m in masks):
+            ones = np.ones(loaded.shape[-2:], np.float32)
+            mask = torch.from_numpy(np.stack([ones if m is None else m for m in masks]).astype(np.float32))
+            mask = mask[:, None]
+        masked = {"mask": mask} if mask is not None else {}
+        preds = list(self.predictor.depth(loaded, camera, **masked)[:, 0].double().cpu().numpy())
         win = self.predictor.window(camera)
         if win is None:
             return preds, gts, masks, camera.wraps

@@ -61,7 +61,7 @@ from typing import Any
 
 import numpy as np
 
-from ..data import DatasetError, DatasetWarning, SequenceInfo, scan_dataset, write_tum
+from ..data import DatasetError, DatasetWarning, SequenceInfo, load_mask, scan_dataset, write_tum
 from ..errors import InputError
 from ..geometry import roll_pose
 from .frames import (
@@ -118,6 +118,11 @@ _ZERO_MOTION_METRICS = ("ape_rmse", "ape_mean", "ape_median", "ape_max")
 
 
 # --------------------------------------------------------------------------------------- one run
+def _mask(seq: SequenceInfo) -> np.ndarray | None:
+    """The sequence's ``mask.png`` ``[H,W]`` (an occluder fixed to the camera: 0), or ``None``."""
+    return None if seq.mask is None else load_mask(seq.mask)
+
+
 @dataclass
 class _Run:
     """One pose evaluation: where the estimates come from (a predictor, or TUM ``files`` by sequence
@@ -194,7 +199,9 @@ def _estimate(
         )
         return None
     images = [seq.images[i] for i in index]
-    windows = predict_windows(run.predictor, images, seq.camera, run.batch_size, run.progress, seq.name, roll)
+    windows = predict_windows(
+        run.predictor, images, seq.camera, run.batch_size, run.progress, seq.name, roll, mask=_mask(seq)
+    )
     est = chain_poses(windows.steps(len(images)))
     if run.out_dir is not None:
         write_tum(run.out_dir / f"{seq.name}.txt", times, est)
@@ -276,7 +283,8 @@ def _sequence(run: _Run, seq: SequenceInfo, n_seq: int) -> dict[str, Any] | None
         )
         return info
     if seq.camera.wraps:  # the visual compass reads full panoramas only
-        est.compass = chain_poses(compass_steps([seq.images[i] for i in index], roll, width=seq.camera.width))
+        frames = [seq.images[i] for i in index]
+        est.compass = chain_poses(compass_steps(frames, roll, width=seq.camera.width, mask=_mask(seq)))
     _score(run, seq, gt, times, est, info)
     return info
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from ..data import DatasetError, SequenceInfo, read_tum
-from ..geometry import compass_yaw, roll_angle, rotation_y
+from ..geometry import compass_yaw, roll_angle, roll_columns, rotation_y
 from ..runtime import progress_bar
 from .frames import load_images, prefetch
 from .pose_metrics import consecutive_from_windows, match_times
@@ -70,6 +70,7 @@ def predict_windows(
     desc: str = "poses",
     roll: int = 0,
     probes: bool = True,
+    mask: np.ndarray | None = None,
 ) -> WindowPoses:
     """Run the pose network on every full window of a chain of frames (see :class:`WindowPoses`).
 
@@ -81,7 +82,10 @@ def predict_windows(
         progress: show a progress bar labelled ``desc`` (``None``: when stderr is a terminal).
         roll: roll every frame horizontally by this many columns first (a yaw of the camera).
         probes: also predict each window standing still and with its sources swapped (two more runs).
+        mask: ``[H,W]`` 1 where the frames see the scene, 0 on an occluder fixed to the camera (the
+            sequence's ``mask.png``), which the network sees filled; rolled with the frames.
     """
+    masked = {"mask": _mask_tensor(mask, roll)} if mask is not None else {}
     seq_length = int(predictor.config.data.seq_length)
     k = (seq_length - 1) // 2
     centres = list(range(k, len(images) - k))
@@ -103,7 +107,7 @@ def predict_windows(
                 runs["standing"] = tgt[:, None].expand_as(src).contiguous()
                 runs["swapped"] = src.flip(1)
             for name, sources in runs.items():
-                rel = predictor.poses(tgt, sources, camera).double().cpu().numpy()
+                rel = predictor.poses(tgt, sources, camera, **masked).double().cpu().numpy()
                 if name == "swapped":
                     rel = rel[:, ::-1]
                 store = getattr(out, name)
@@ -122,23 +126,42 @@ def predict_consecutive(
     progress: bool | None = False,
     desc: str = "poses",
     roll: int = 0,
+    mask: np.ndarray | None = None,
 ) -> np.ndarray:
     """Run the pose network over a chain of frames and return ``T_{j->j+1}`` ``[M-1,4,4]`` (float64)
     (arguments as :func:`predict_windows`)."""
-    windows = predict_windows(predictor, images, camera, batch_size, progress, desc, roll, probes=False)
+    windows = predict_windows(
+        predictor, images, camera, batch_size, progress, desc, roll, probes=False, mask=mask
+    )
     return windows.steps(len(images))
 
 
-def compass_steps(images: Sequence[Path], roll: int = 0, batch_size: int = 32, width: int = 0) -> np.ndarray:
+def _mask_tensor(mask: np.ndarray | None, roll: int) -> torch.Tensor | None:
+    """``[H,W]`` -> ``[1,1,H,W]`` float, rolled by ``roll`` columns like the frames (``None`` stays)."""
+    if mask is None:
+        return None
+    rolled = roll_columns(np.asarray(mask, np.float32), roll, axis=1)
+    return torch.from_numpy(np.ascontiguousarray(rolled))[None, None]
+
+
+def compass_steps(
+    images: Sequence[Path],
+    roll: int = 0,
+    batch_size: int = 32,
+    width: int = 0,
+    mask: np.ndarray | None = None,
+) -> np.ndarray:
     """The visual compass's consecutive relative poses ``T_{j->j+1}`` ``[M-1,4,4]`` (float64) of a chain
     of full panoramas: the yaw between the frames (:func:`cylsfm.geometry.compass_yaw`, no depth, nothing
     learned) after one unit step forward along the camera's +z axis (a constant speed: the scale is fitted
     by every measure that uses it). With ``roll`` (columns of ``width``: frames rolled as if the camera had
-    been mounted turned) forward is +z turned by the roll."""
+    been mounted turned) forward is +z turned by the roll. ``mask`` (``[H,W]``, as for
+    :func:`predict_windows`): the occluder fixed to the camera is left out."""
+    mask_t = _mask_tensor(mask, roll)
     yaws = []
     for i in range(0, len(images) - 1, batch_size):
         frames = load_images(images[i : i + batch_size + 1], roll)
-        yaws.append(compass_yaw(frames[:-1], frames[1:]).numpy())
+        yaws.append(compass_yaw(frames[:-1], frames[1:], mask_t).numpy())
     yaw = np.concatenate(yaws) if yaws else np.zeros(0)
     out = np.tile(np.eye(4), (len(yaw), 1, 1))
     out[:, :3, :3] = rotation_y(yaw)

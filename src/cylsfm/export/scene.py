@@ -8,6 +8,11 @@ cylindrical panorama. The scale of a network's depth is unknown: :func:`Scene.to
 camera's height above a level ground (the fit of :func:`~cylsfm.geometry.ground.ground_height`), and
 :func:`Scene.normalised` gives one of a chosen median depth (a comfortable stereo for VR when no metres are
 known). :attr:`Scene.scale_note` says which, for the outputs' headers.
+
+A mask (white where the scene is seen, black on an occluder fixed to the camera: a helmet, a mount; a
+dataset frame's sequence ``mask.png`` by default) keeps the occluder out of the geometry: the network sees
+it filled from its surroundings, and its depth is unknown (0), so no mesh vertex and no stereo parallax
+comes from it.
 """
 
 from __future__ import annotations
@@ -111,17 +116,27 @@ def _dataset_camera(pano: Path) -> Camera | None:
     return load_camera(path) if pano.parent.name == "images" and path.is_file() else None
 
 
+def _dataset_mask(pano: Path) -> Path | None:
+    """The ``mask.png`` of the dataset sequence a frame ``SEQ/images/X.png`` belongs to, if any."""
+    path = pano.parent.parent / "mask.png"
+    return path if pano.parent.name == "images" and path.is_file() else None
+
+
 def load_scene(
     pano: str | os.PathLike[str],
     depth: str | os.PathLike[str] | None = None,
     checkpoint: str | os.PathLike[str] | None = None,
     camera: str | os.PathLike[str] | None = None,
     device: str = "auto",
+    mask: str | os.PathLike[str] | bool | None = None,
 ) -> Scene:
     """The panorama ``pano`` with its depth from ``depth`` (a ``.npy`` file) or ``checkpoint``.
 
     ``camera``: the panorama's camera.json (default: a dataset frame's sequence camera, else a full
     cylinder of +-45 degrees for a depth file, or as ``cylsfm predict`` decides for a checkpoint).
+    ``mask``: an image of the panorama's aspect ratio, black on an occluder fixed to the camera, whose
+    depth is then unknown (``None``: a dataset frame's sequence ``mask.png`` when there is one; ``False``:
+    none).
 
     Raises:
         CylsfmError: naming the file: neither or both of ``depth`` and ``checkpoint``, an unreadable or
@@ -131,14 +146,27 @@ def load_scene(
     if (depth is None) == (checkpoint is None):
         raise InputError("give the depth either from a checkpoint or from a depth file, not both or neither")
     cam = load_camera(camera) if camera is not None else _dataset_camera(pano)
+    mask_file = _dataset_mask(pano) if mask is None else (None if mask is False else Path(mask))  # type: ignore[arg-type]
     if checkpoint is not None:
-        return scene_function(pano, checkpoint, camera if camera is not None else cam, device)(
-            load_image(pano)
-        )
+        chosen = camera if camera is not None else cam
+        return scene_function(pano, checkpoint, chosen, device, mask_file)(load_image(pano))
     w, h = image_size(pano)
     cyl = _full_cylinder(w, h, cam, str(camera or pano))
     d = load_depth(Path(depth), size=(w, h))  # type: ignore[arg-type]
+    if mask_file is not None:
+        d = np.where(_mask_at(mask_file, (w, h)) > 0, d, np.float32(0)).astype(np.float32)
     return Scene(load_image(pano), d, cyl, "metres", "metres (the depth file's)")
+
+
+def _mask_at(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """The mask file at ``size`` ``(W, H)`` (``float32 [H,W]``, 1: the scene), of the same aspect ratio."""
+    from ..data.io import load_mask
+
+    mw, mh = image_size(path)
+    w, h = size
+    if abs(mw / mh - w / h) > 0.02 * (w / h):
+        raise CylsfmError(f"{path}: the mask is {mw}x{mh}, the panorama {w}x{h}: not the same aspect ratio")
+    return load_mask(path, size)
 
 
 def scene_function(
@@ -146,12 +174,15 @@ def scene_function(
     checkpoint: str | os.PathLike[str],
     camera: str | os.PathLike[str] | Camera | None = None,
     device: str = "auto",
+    mask: str | os.PathLike[str] | None = None,
 ):
     """A function ``rgb uint8 [H,W,3] -> Scene`` predicting frames of input ``where`` (a video's frames)
     with ``checkpoint``; ``camera``: the frames' camera (a camera.json or a camera; ``None``: as ``cylsfm
-    predict`` decides); the plan (camera conversion) is made once per frame size."""
+    predict`` decides); the plan (camera conversion) is made once per frame size. ``mask``: an image of
+    the frames' aspect ratio, black on an occluder fixed to the camera: filled in what the network sees,
+    its depth unknown (0)."""
     from ..model import Predictor
-    from ..model.plan import model_vfov_h, network_images, plan_input
+    from ..model.plan import model_vfov_h, network_images, network_mask, plan_input
 
     predictor = Predictor.from_checkpoint(checkpoint, device)
     if predictor.fov < 360:
@@ -160,16 +191,20 @@ def scene_function(
         )
     cam = load_camera(camera) if isinstance(camera, str | os.PathLike) else camera
     label = str(camera) if isinstance(camera, str | os.PathLike) else str(where)
-    plans: dict[tuple[int, int], object] = {}
+    plans: dict[tuple[int, int], tuple[object, torch.Tensor | None]] = {}
 
     def scene_of(rgb: np.ndarray) -> Scene:
         size = (rgb.shape[1], rgb.shape[0])
         if size not in plans:
-            plans[size] = plan_input(where, size, predictor, model_vfov_h(predictor.config), cam, label)
-        plan = plans[size]
+            p = plan_input(where, size, predictor, model_vfov_h(predictor.config), cam, label)
+            m = None if mask is None else network_mask(mask, size, p, p.network_input.size)
+            plans[size] = (p, m)
+        plan, seen = plans[size]
         with torch.inference_mode():
             images = network_images([rgb], plan, predictor.device)  # type: ignore[arg-type]
-            depth = predictor.depth(images, plan.network_input)[0, 0].float().cpu().numpy()  # type: ignore[attr-defined]
+            depth = predictor.depth(images, plan.network_input, seen)[0, 0].float().cpu().numpy()  # type: ignore[attr-defined]
+        if seen is not None:
+            depth = np.where(seen[0, 0].numpy() > 0, depth, np.float32(0))
         net_cam = plan.network_input  # type: ignore[attr-defined]
         assert isinstance(net_cam, CylindricalCamera)
         if not np.isfinite(depth).all():

@@ -18,6 +18,11 @@ gradient wraps across the seam. Everything is batched: ``B`` pairs are aligned a
 Several starting poses may be given per pair (the network's pose, the visual compass's yaw ...): at the
 start of every level the candidates and the current estimate are compared and the cheapest one goes on,
 so a bad start is dropped as soon as a level sees it.
+
+A mask fixed to the camera (a helmet, a mount, the car's roof: the same pixels in every frame) takes those
+pixels out: a target pixel under the mask is not compared, and neither is one whose point lands on the
+mask in the source (it is hidden there: it counts neither as compared nor as lost). Without the mask, such
+an occluder, identical in both frames, pulls every estimate towards standing still.
 """
 
 from __future__ import annotations
@@ -93,7 +98,8 @@ class AlignResult:
 class _Level:
     camera: Camera
     target: Tensor  # [B,1,h,w] grey, normalised
-    source: Tensor  # [B,3,h,w]: grey source and its two derivatives (d/du, d/dv)
+    source: Tensor  # [B,3,h,w] grey source and its two derivatives (d/du, d/dv); [B,4,h,w]: and where
+    # the source is free of the mask (1), eroded by a pixel so that no derivative reads the occluder
     points: Tensor  # [B,3,h,w] target points (from the depth)
     has_depth: Tensor  # [B,1,h,w] bool
     wrap: bool
@@ -106,15 +112,29 @@ class _Linear:
     r: Tensor  # [B,1,h,w]
     jac: Tensor  # [B,6,h,w]
     valid: Tensor  # [B,1,h,w] bool
-    usable: Tensor  # [B] the number of target pixels with a depth (valid or not at this pose)
+    usable: Tensor  # [B] the target pixels with a depth that the source does not hide under its mask
 
 
-def _grey(images: Tensor) -> Tensor:
+def _grey(images: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Grey ``[B,1,H,W]``, normalised to zero mean and unit variance (over the pixels of ``mask``)."""
     w = torch.tensor(_LUMA, dtype=images.dtype, device=images.device).reshape(1, 3, 1, 1)
     g = (images * w).sum(1, keepdim=True)
-    mean = g.mean((2, 3), keepdim=True)
-    std = g.std((2, 3), keepdim=True).clamp(min=1e-6)
-    return (g - mean) / std
+    if mask is None:
+        mean = g.mean((2, 3), keepdim=True)
+        std = g.std((2, 3), keepdim=True).clamp(min=1e-6)
+        return (g - mean) / std
+    n = mask.sum((2, 3), keepdim=True).clamp(min=2)
+    mean = (g * mask).sum((2, 3), keepdim=True) / n
+    var = (((g - mean) ** 2) * mask).sum((2, 3), keepdim=True) / (n - 1)
+    return (g - mean) / var.sqrt().clamp(min=1e-6)
+
+
+def _erode(clean: Tensor, wrap: bool) -> Tensor:
+    """``[B,1,h,w]`` float 0/1 -> the pixels whose 3x3 neighbourhood is all 1 (across the seam when
+    ``wrap``; the image's edge rows and columns count as clean)."""
+    x = circular_pad(clean, 1, 1) if wrap else F.pad(clean, (1, 1, 0, 0), mode="replicate")
+    x = F.pad(x, (0, 0, 1, 1), mode="replicate")
+    return -F.max_pool2d(-x, 3, stride=1)
 
 
 def _gradients(g: Tensor, wrap: bool) -> Tensor:
@@ -147,22 +167,34 @@ def resize_depth(depth: Tensor, size: tuple[int, int]) -> Tensor:
 
 
 def _pyramid(
-    target: Tensor, source: Tensor, depth: Tensor, camera: Camera, wrap: bool, levels: int
+    target: Tensor,
+    source: Tensor,
+    depth: Tensor,
+    camera: Camera,
+    wrap: bool,
+    levels: int,
+    mask: Tensor | None = None,
 ) -> list[_Level]:
-    """The levels, finest first."""
-    tgt, src = _grey(target.float()), _grey(source.float())
+    """The levels, finest first (``mask`` ``[B,1,H,W]`` float: 1 where the scene is seen, or ``None``)."""
+    tgt, src = _grey(target.float(), mask), _grey(source.float(), mask)
     out = []
     for level in range(levels):
         if level:
             if tgt.shape[-2] // 2 < _MIN_HEIGHT or tgt.shape[-1] // 2 < _MIN_HEIGHT:
                 break
             tgt, src = _half(tgt), _half(src)
+            mask = _half(mask) if mask is not None else None
         h, w = tgt.shape[-2:]
         cam = camera if level == 0 else camera.resized(w, h)
         d = resize_depth(depth, (h, w))
         ok = d > 0
         d = torch.where(ok, d, torch.ones_like(d))
-        out.append(_Level(cam, tgt, _gradients(src, wrap), cam.unproject(d), ok, wrap))
+        grads = _gradients(src, wrap)
+        if mask is not None:  # a pixel the occluder touches at this level is not used
+            clean = (mask > 0.999).float()
+            ok = ok & (clean > 0)
+            grads = torch.cat((grads, _erode(clean, wrap)), 1)
+        out.append(_Level(cam, tgt, grads, cam.unproject(d), ok, wrap))
     return out
 
 
@@ -171,6 +203,11 @@ def _linearize(lv: _Level, pose: Tensor) -> _Linear:
     uv = lv.camera.project(points)
     sampled, valid = sample_image(lv.source, uv, lv.wrap)
     valid = valid & lv.camera.projectable(points) & lv.has_depth
+    usable = lv.has_depth.flatten(1).sum(1)
+    if sampled.shape[1] == 4:  # the source's mask: what lands on it is hidden, neither compared nor lost
+        hidden = valid & (sampled[:, 3:] < 0.999)
+        valid = valid & ~hidden
+        usable = usable - hidden.flatten(1).sum(1)
     r = sampled[:, :1] - lv.target
     jp = projection_jacobian(lv.camera, points)  # [B,2,3,h,w]
     g = sampled[:, 1:2] * jp[:, 0] + sampled[:, 2:3] * jp[:, 1]  # dI/dP [B,3,h,w]
@@ -178,7 +215,7 @@ def _linearize(lv: _Level, pose: Tensor) -> _Linear:
     gx, gy, gz = g.unbind(1)
     rot = torch.stack((py * gz - pz * gy, pz * gx - px * gz, px * gy - py * gx), 1)  # points x g
     jac = torch.cat((g, rot), 1)
-    return _Linear(r, jac, valid, lv.has_depth.flatten(1).sum(1))
+    return _Linear(r, jac, valid, usable)
 
 
 def _scale(lin: _Linear) -> Tensor:
@@ -238,7 +275,7 @@ def _pick(lv: _Level, poses: list[Tensor]) -> tuple[Tensor, Tensor, Tensor, _Lin
         torch.stack([x.r for x in lins])[best, b],
         torch.stack([x.jac for x in lins])[best, b],
         torch.stack([x.valid for x in lins])[best, b],
-        lins[0].usable,
+        torch.stack([x.usable for x in lins])[best, b],
     )
     return pose, best, costs[best, b], lin, k
 
@@ -258,7 +295,7 @@ def _lm(lv: _Level, pose: Tensor, lin: _Linear, cost: Tensor, k: Tensor, config:
             torch.where(sel, cand_lin.r, lin.r),
             torch.where(sel, cand_lin.jac, lin.jac),
             torch.where(sel, cand_lin.valid, lin.valid),
-            lin.usable,
+            torch.where(better, cand_lin.usable, lin.usable),
         )
         cost = torch.where(better, cand_cost, cost)
     return pose, cost, lin
@@ -272,6 +309,7 @@ def align(
     camera: Camera,
     wrap: bool | None = None,
     config: AlignConfig | None = None,
+    mask: Tensor | None = None,
 ) -> AlignResult:
     """Refine relative poses by direct photometric alignment (see the module docstring).
 
@@ -284,9 +322,11 @@ def align(
         camera: the camera of all images.
         wrap: sample across the seam; ``None``: when the camera wraps (a full panorama).
         config: :class:`AlignConfig` (default settings when ``None``).
+        mask: ``[B,1,H,W]`` or ``[1,1,H,W]``, 1 (or True) where the scene is seen and 0 on an occluder fixed
+            to the camera (the same pixels in target and source); ``None``: every pixel.
 
     Returns:
-        :class:`AlignResult`.
+        :class:`AlignResult` (``valid``: the fraction of all the target's pixels compared).
     """
     config = config or AlignConfig()
     check_shape(target, "B,3,H,W", "target")
@@ -309,7 +349,7 @@ def align(
         cands = cands[:, None]
     check_shape(cands, f"{target.shape[0]},K,4,4", "init")
     wrap = camera.wraps if wrap is None else wrap
-    levels = _pyramid(target, source, depth, camera, wrap, config.levels)
+    levels = _pyramid(target, source, depth, camera, wrap, config.levels, _mask(mask, target))
     starts = [cands[:, i] for i in range(cands.shape[1])]
     pose = starts[0]
     start = torch.zeros(target.shape[0], dtype=torch.long, device=target.device)
@@ -330,8 +370,24 @@ def align(
     return AlignResult(pose, cost, start_cost, start, valid)
 
 
+def _mask(mask: Tensor | None, target: Tensor) -> Tensor | None:
+    """The mask checked and as float ``[B,1,H,W]`` on the target's device."""
+    if mask is None:
+        return None
+    check_shape(mask, "N,1,H,W", "mask")
+    if mask.shape[-2:] != target.shape[-2:] or mask.shape[0] not in (1, target.shape[0]):
+        raise ShapeError(f"mask {tuple(mask.shape)} does not fit images {tuple(target.shape)}")
+    return mask.to(device=target.device, dtype=torch.float32).expand(target.shape[0], -1, -1, -1)
+
+
 def photometric_costs(
-    target: Tensor, source: Tensor, depth: Tensor, poses: Tensor, camera: Camera, wrap: bool | None = None
+    target: Tensor,
+    source: Tensor,
+    depth: Tensor,
+    poses: Tensor,
+    camera: Camera,
+    wrap: bool | None = None,
+    mask: Tensor | None = None,
 ) -> Tensor:
     """The robust photometric cost ``[B,K]`` of ``K`` poses per pair, comparable across the ``K``.
 
@@ -340,10 +396,11 @@ def photometric_costs(
 
     Args:
         target, source: images ``[B,3,H,W]``; depth: the targets' depth ``[B,1,H,W]``.
-        poses: ``T_{t->s}`` ``[B,K,4,4]``; camera, wrap: as for :func:`align`.
+        poses: ``T_{t->s}`` ``[B,K,4,4]``; camera, wrap, mask: as for :func:`align`.
     """
     check_shape(poses, f"{target.shape[0]},K,4,4", "poses")
-    lv = _pyramid(target, source, depth, camera, camera.wraps if wrap is None else wrap, 1)[0]
+    wrap = camera.wraps if wrap is None else wrap
+    lv = _pyramid(target, source, depth, camera, wrap, 1, _mask(mask, target))[0]
     lins = [_linearize(lv, poses[:, i].double()) for i in range(poses.shape[1])]
     k = torch.stack([_scale(lin) for lin in lins]).min(0).values
     return torch.stack([_cost(lin, k) for lin in lins], 1)

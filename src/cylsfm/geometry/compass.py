@@ -10,6 +10,10 @@ gradients, summed over rows and colour channels and normalised to unit magnitude
 refined to a fraction of a column by the slope of the residual phase over the low frequencies (exact for a
 pure shift).
 
+A mask fixed to the camera (a helmet or a mount, in the same pixels of both frames) would pull the shift to
+zero; with ``mask`` the column gradients touching it are left out (set to zero in both images), so the
+occluder adds nothing to the cross-power spectrum.
+
 The compass learns nothing: in the evaluations it is the reference that a pose network's rotation must
 beat, and it can initialise or check a network's yaw.
 """
@@ -26,20 +30,26 @@ from ..errors import ShapeError, check_shape
 __all__ = ["column_shift", "compass_yaw"]
 
 
-def _spectrum(x: Tensor) -> Tensor:
-    """Column-gradient spectrum ``[B, C*H, W//2+1]`` of images ``[B, C, H, W]`` (periodic width)."""
+def _spectrum(x: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Column-gradient spectrum ``[B, C*H, W//2+1]`` of images ``[B, C, H, W]`` (periodic width); with
+    ``mask`` ``[B or 1, 1, H, W]`` only the differences between two pixels of the mask."""
     x = x.to(torch.float64)
     grad = x - torch.roll(x, 1, dims=-1)  # the difference across the seam included: circular
+    if mask is not None:
+        m = mask.to(device=x.device, dtype=torch.bool)
+        grad = grad * (m & torch.roll(m, 1, dims=-1))
     return torch.fft.rfft(grad.flatten(1, 2), dim=-1)
 
 
-def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125) -> Tensor:
+def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125, mask: Tensor | None = None) -> Tensor:
     """The circular column shift ``s`` with ``b ≈ roll_columns(a, s)``, to a fraction of a column.
 
     Args:
         a: panoramas ``[B, C, H, W]`` (any value range), full 360° width.
         b: panoramas of the same shape.
         low_band: fraction of the width's frequencies (from the lowest) whose phase refines the integer peak.
+        mask: ``[B, 1, H, W]`` or ``[1, 1, H, W]``: 1 (True) where the scene is seen, 0 on an occluder fixed
+            to the camera; ``None``: every pixel.
 
     Returns:
         ``[B]`` shifts in columns (float64), in ``[-W/2, W/2)``.
@@ -51,8 +61,17 @@ def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125) -> Tensor:
     check_shape(a, "B,C,H,W", "a")
     if b.shape != a.shape:
         raise ShapeError(f"column_shift: b {tuple(b.shape)} and a {tuple(a.shape)} differ in shape")
+    if mask is not None and (
+        mask.dim() != 4
+        or mask.shape[1] != 1
+        or mask.shape[-2:] != a.shape[-2:]
+        or mask.shape[0] not in (1, a.shape[0])
+    ):
+        raise ShapeError(f"column_shift: mask {tuple(mask.shape)} does not fit images {tuple(a.shape)}")
     width = a.shape[-1]
-    cross = (_spectrum(a).conj() * _spectrum(b)).sum(1)  # [B, W//2+1]; pure shift: |A|^2 e^{-2pi i k s/W}
+    cross = (_spectrum(a, mask).conj() * _spectrum(b, mask)).sum(
+        1
+    )  # [B, W//2+1]; pure shift: |A|^2 e^{-2pi i k s/W}
     cross[:, 0] = 0
     phase = cross / cross.abs().clamp_min(1e-12)
     peak = torch.fft.irfft(phase, n=width, dim=-1).argmax(-1).to(torch.float64)  # [B]
@@ -66,7 +85,7 @@ def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125) -> Tensor:
     return torch.remainder(shift + width / 2, width) - width / 2
 
 
-def compass_yaw(a: Tensor, b: Tensor) -> Tensor:
+def compass_yaw(a: Tensor, b: Tensor, mask: Tensor | None = None) -> Tensor:
     """The yaw (radians) between the cameras of two full panoramas ``a`` and ``b``.
 
     Camera points of ``b`` are ``yaw_matrix(yaw) @`` those of ``a`` (as for a panorama rolled by
@@ -77,8 +96,9 @@ def compass_yaw(a: Tensor, b: Tensor) -> Tensor:
     Args:
         a: panoramas ``[B, C, H, W]``, full 360° width.
         b: the same cameras after the motion, same shape.
+        mask: as for :func:`column_shift`.
 
     Returns:
         ``[B]`` yaws in radians (float64), in ``[-pi, pi)``.
     """
-    return column_shift(a, b) * (2 * math.pi / a.shape[-1])
+    return column_shift(a, b, mask=mask) * (2 * math.pi / a.shape[-1])

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from ..data.convert import to_cylinder
+from ..data.io import load_mask
 from ..errors import CylsfmError
 from ..geometry import Camera, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
 from .predictor import Predictor
@@ -42,6 +43,7 @@ __all__ = [
     "model_camera",
     "model_vfov_h",
     "network_images",
+    "network_mask",
     "plan_input",
 ]
 
@@ -195,3 +197,39 @@ def network_images(batch: Sequence[np.ndarray], plan: Plan, device: torch.device
             x = to_cylinder(x, plan.camera, plan.convert_to).clamp(0, 1)
         frames.append(x)
     return torch.cat(frames)
+
+
+def network_mask(path: Any, frames: tuple[int, int], plan: Plan, size: tuple[int, int]) -> torch.Tensor:
+    """A mask image of the input's frames -> ``float [1,1,h,w]`` in ``{0, 1}`` at the network's ``size``
+    ``(w, h)``: 1 where the scene is seen (white in the file) over at least 99% of a pixel's area, 0 on an
+    occluder fixed to the camera (black) and where a converted input has no pixels.
+
+    Args:
+        path: the mask file, in the frames' own geometry (``frames``: their size ``(W, H)``); any size of
+            the same aspect ratio.
+        plan: how the frames reach the network (:func:`plan_input`).
+
+    Raises:
+        CylsfmError: naming the file: unreadable, or not of the frames' aspect ratio.
+    """
+    from PIL import Image
+
+    w, h = frames
+    try:
+        with Image.open(path) as im:
+            mw, mh = im.size
+    except Exception:
+        load_mask(path)  # raises the project's error naming the file
+        raise
+    if not _aspect_ok(mw / mh, w / h):
+        raise CylsfmError(
+            f"{path}: the mask is {mw}x{mh} but the frames are {w}x{h}: a mask must cover the frames as they "
+            "are (same aspect ratio; white where the scene is seen, black on the mount or helmet)"
+        )
+    x = torch.from_numpy(load_mask(path, (w, h)))[None, None]
+    if plan.convert_to is not None:
+        x, has = to_cylinder(x, plan.camera, plan.convert_to, return_mask=True)
+        x = x * has.to(x.dtype)
+    if (x.shape[-1], x.shape[-2]) != tuple(size):
+        x = torch.nn.functional.interpolate(x, size=(size[1], size[0]), mode="area")
+    return (x > 0.99).float()

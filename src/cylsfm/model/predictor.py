@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..data.fill import fill_masked
 from ..errors import CylsfmError
 from ..geometry import (
     Camera,
@@ -103,12 +104,19 @@ class Predictor:
         cam = camera.resized(*self.size)
         return cam.crop(self.fov) if self.fov < 360 else cam  # type: ignore[attr-defined]
 
-    def prepare(self, images: Tensor, camera: Camera) -> Tensor:
-        """``[B,3,H,W]`` in [0, 1] at the camera's size -> the network's input ``[B,3,h,w]``."""
+    def prepare(self, images: Tensor, camera: Camera, mask: Tensor | None = None) -> Tensor:
+        """``[B,3,H,W]`` in [0, 1] at the camera's size -> the network's input ``[B,3,h,w]``.
+
+        ``mask`` ``[B or 1,1,H,W]``: 1 where the scene is seen, 0 on an occluder fixed to the camera (a
+        helmet, a mount), whose pixels the network sees filled from their surroundings
+        (:func:`~cylsfm.data.fill.fill_masked`), as in training with a mask; ``None``: the images as they
+        are."""
         if images.shape[-2:] != (camera.height, camera.width):
             raise CylsfmError(
                 f"images are {images.shape[-1]}x{images.shape[-2]} but the camera is {camera.width}x{camera.height}"
             )
+        if mask is not None:
+            images = fill_masked(images, mask.to(images.device))
         w, h = self.size
         if images.shape[-2:] != (h, w):
             images = F.interpolate(images, size=(h, w), mode="area")
@@ -119,18 +127,20 @@ class Predictor:
 
     # ------------------------------------------------------------------ outputs
     @torch.inference_mode()
-    def disparity(self, images: Tensor, camera: Camera) -> Tensor:
-        """Finest-scale disparity ``[B,1,h,w]`` at the network's input size."""
-        return self.models.disp_net(self.prepare(images, camera))[0].float()
+    def disparity(self, images: Tensor, camera: Camera, mask: Tensor | None = None) -> Tensor:
+        """Finest-scale disparity ``[B,1,h,w]`` at the network's input size (``mask``: see
+        :meth:`prepare`)."""
+        return self.models.disp_net(self.prepare(images, camera, mask))[0].float()
 
     @torch.inference_mode()
-    def depth(self, images: Tensor, camera: Camera) -> Tensor:
+    def depth(self, images: Tensor, camera: Camera, mask: Tensor | None = None) -> Tensor:
         """Depth ``[B,1,H,W']`` (network units) at the input's resolution (``W'``: the cropped width).
 
         The disparity is resized bilinearly (wrapping around the seam of full panoramas) before it is
-        inverted, as in SfMLearner's evaluation.
+        inverted, as in SfMLearner's evaluation. ``mask``: see :meth:`prepare` (the depth under the
+        occluder is the filled image's: meaningless; leave it out downstream).
         """
-        disp = self.disparity(images, camera)
+        disp = self.disparity(images, camera, mask)
         win = self.window(camera)  # the same field of view at the input's resolution
         width = camera.width if win is None else win[1] - win[0]
         size = (camera.height, width)
@@ -143,7 +153,9 @@ class Predictor:
         return 1.0 / disp.clamp(min=1e-6)
 
     @torch.inference_mode()
-    def poses(self, target: Tensor, sources: Tensor, camera: Camera, roll: int = 0) -> Tensor:
+    def poses(
+        self, target: Tensor, sources: Tensor, camera: Camera, roll: int = 0, mask: Tensor | None = None
+    ) -> Tensor:
         """Relative poses ``T_tgt_to_src [B,S,4,4]`` (translation in network depth units).
 
         ``target`` is ``[B,3,H,W]``, ``sources`` ``[B,S,3,H,W]`` with ``S = seq_length - 1`` of the model.
@@ -154,7 +166,7 @@ class Predictor:
         ``roll`` (full panoramas only): the network reads the frames rolled by this many columns of its
         input (a yaw, :func:`~cylsfm.geometry.roll_columns`) and its poses are turned back
         (:func:`~cylsfm.geometry.roll_pose`): e.g. to show it a camera mounted turned as one that faces its
-        motion (:func:`cylsfm.odometry.mount.mount_yaw`).
+        motion (:func:`cylsfm.odometry.mount.mount_yaw`). ``mask``: see :meth:`prepare`.
 
         Raises:
             CylsfmError: ``roll`` for a model that does not see whole panoramas.
@@ -162,8 +174,8 @@ class Predictor:
         if roll and not (self.fov >= 360 and self.wrap):
             raise CylsfmError("turning the frames (roll) needs a model of full panoramas")
         b, s = sources.shape[:2]
-        tgt = self.prepare(target, camera)
-        src = self.prepare(sources.flatten(0, 1), camera).reshape(b, s, *tgt.shape[1:])
+        tgt = self.prepare(target, camera, mask)
+        src = self.prepare(sources.flatten(0, 1), camera, mask).reshape(b, s, *tgt.shape[1:])
         if roll:
             tgt = roll_columns(tgt, roll).contiguous(memory_format=torch.channels_last)
             src = roll_columns(src, roll)

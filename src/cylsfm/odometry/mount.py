@@ -45,10 +45,10 @@ class Mount:
     pairs: int
 
 
-def _starts(tgt: Tensor, src: Tensor, length: float, directions: int) -> Tensor:
+def _starts(tgt: Tensor, src: Tensor, length: float, directions: int, mask: Tensor | None) -> Tensor:
     """``[B,K,4,4]``: the compass's yaw with a step of ``length`` towards each of ``K`` azimuths."""
     b = tgt.shape[0]
-    rot = yaw_matrix(compass_yaw(tgt.float(), src.float()), dtype=torch.float64)  # [B,3,3]
+    rot = yaw_matrix(compass_yaw(tgt.float(), src.float(), mask), dtype=torch.float64)  # [B,3,3]
     az = torch.arange(directions, dtype=torch.float64) * (2 * math.pi / directions)
     centres = length * torch.stack((torch.sin(az), torch.zeros_like(az), torch.cos(az)), -1)  # [K,3]
     out = torch.eye(4, dtype=torch.float64).repeat(b, directions, 1, 1)
@@ -72,6 +72,7 @@ def mount_yaw(
     gap: int = GAP,
     pairs: int = PAIRS,
     directions: int = DIRECTIONS,
+    mask: Tensor | None = None,
 ) -> Mount | None:
     """The azimuth of the direction of travel over consecutive frames of a full-panorama ride.
 
@@ -81,6 +82,8 @@ def mount_yaw(
         step_length: the length of one frame's step in the depth's unit (e.g. the pose network's).
         config: the alignment's settings; gap: frames between a pair's two frames; pairs: at most this
             many pairs, spread over the frames; directions: starting directions per pair.
+        mask: ``[1,1,H,W]``: 1 where the scene is seen, 0 on an occluder fixed to the camera (``None``:
+            every pixel); the compass and the alignment leave the occluder out.
 
     Returns:
         The :class:`Mount`, or ``None`` for too few frames (``N <= gap``).
@@ -90,7 +93,7 @@ def mount_yaw(
         return None
     first = torch.linspace(0, n - 1 - gap, min(pairs, n - gap)).round().long().unique()
     tgt, src, d = images[first], images[first + gap], depth[first]
-    starts = _starts(tgt, src, step_length * gap, directions)
+    starts = _starts(tgt, src, step_length * gap, directions, mask)
     k = directions
     res = align(
         tgt.repeat_interleave(k, 0),
@@ -99,9 +102,10 @@ def mount_yaw(
         starts.flatten(0, 1),
         camera,
         config=config,
+        mask=mask,
     )
     found = res.poses.view(len(first), k, 4, 4)
-    costs = photometric_costs(tgt, src, d, found, camera)  # [B,K]
+    costs = photometric_costs(tgt, src, d, found, camera, mask=mask)  # [B,K]
     best = found[torch.arange(len(first)), costs.argmin(1)]
     centres = -(best[:, :3, :3].transpose(1, 2) @ best[:, :3, 3:])[..., 0]
     heading = torch.atan2(centres[:, 0], centres[:, 2])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -25,7 +26,7 @@ from ..geometry import Camera, load_camera
 from ..geometry.align import resize_depth
 from ..geometry.ground import metric_scale
 from ..model import Predictor
-from ..model.plan import model_vfov_h, network_images, plan_input
+from ..model.plan import model_vfov_h, network_images, network_mask, plan_input
 from ..runtime import fingerprint, progress_bar
 from .frames import Ride, depth_files, open_ride
 from .report import ride_metrics, top_view
@@ -87,6 +88,8 @@ def odometry(
     ride = open_ride(input, opt.fps, opt.stride)
     predictor, plan = _model_and_plan(ride, checkpoint, opt.device, opt.pose_iterations, opt.camera)
     net_cam = plan.network_input.resized(*predictor.size)
+    mask_file = _mask_file(ride, opt.mask)
+    mask = network_mask(mask_file, ride.size, plan, predictor.size) if mask_file is not None else None
     depths = _true_depth_files(opt.depth_from, ride, plan)
     turnable = _turnable(predictor, opt.mount_yaw)
     fixed = {
@@ -97,6 +100,7 @@ def odometry(
         "mount_yaw": opt.mount_yaw,
         "pose_iterations": predictor.pose_iterations,
         "ground_fit": opt.camera_height is not None,  # the depth of every frame is needed for it
+        "mask": _file_id(mask_file),
     }
     run_settings = _settings(ride, checkpoint, plan, opt, fixed)
     (dest := Path(out)).mkdir(parents=True, exist_ok=True)
@@ -121,10 +125,32 @@ def odometry(
         ),
         depth_of=depth_of,
         on_depth=writer,
+        mask=mask,
     )
     if not state.finished:
         _track(ride, plan, predictor, tracker, state, dest, opt.progress)
-    return _finish(ride, state, dest, tracker, opt, depths, started)
+    masked = None if mask is None else {"file": str(mask_file), "occluded_fraction": float(1 - mask.mean())}
+    return _finish(ride, state, dest, tracker, opt, depths, started, masked)
+
+
+def _mask_file(ride: Ride, mask: Any) -> Path | None:
+    """The mask image to use: the one given, else a dataset sequence's own (``False``: none)."""
+    if mask is False:
+        return None
+    if mask is not None:
+        return Path(mask)
+    return ride.sequence.mask if ride.sequence is not None else None
+
+
+def _file_id(path: Path | None) -> str | None:
+    """A file's path and content digest (what a saved state was computed with)."""
+    if path is None:
+        return None
+    try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    except OSError as exc:
+        raise CylsfmError(f"{path}: cannot read the mask ({exc.strerror or exc})") from None
+    return f"{path.resolve()} {digest}"
 
 
 def _true_depth_files(depth_from: Any, ride: Ride, plan: Any) -> list[Path] | None:
@@ -275,6 +301,7 @@ def _finish(
     opt: OdometrySettings,
     depths: list[Path] | None,
     started: float,
+    masked: dict[str, Any] | None,
 ) -> OdometryResult:
     """Scale, chain, and write the trajectory, the plot, the measures and the summary."""
     refine = opt.refine
@@ -287,6 +314,8 @@ def _finish(
     comments.append(
         f"cylsfm {__version__} odometry of {ride.path}" + (", refined by direct alignment" if refine else "")
     )
+    if masked is not None:
+        comments.append(f"mask: {masked['file']} ({masked['occluded_fraction']:.1%} of the pixels left out)")
     if (mount := _mount_summary(state)) is not None:
         comments.append(f"direction of travel in the panorama: {mount['yaw_deg']:.1f} deg ({mount['how']})")
     c2w = chain_poses(steps)
@@ -319,6 +348,7 @@ def _finish(
         "timings": tracker.times.parts,
         "refinement": _refine_stats(state) if refine else None,
         "direction_of_travel": _mount_summary(state),
+        "mask": masked,
     }
     atomic_write_text(dest / "odometry.json", json.dumps(summary, indent=2) + "\n")
     if measured:

@@ -38,6 +38,10 @@ class OdometrySettings:
         progress: show a progress bar.
         pose_iterations: :class:`~cylsfm.model.Predictor`'s further pose passes (``None``: the model's
             default; not with a ready predictor).
+        mask: an image of the frames' pixels that see the scene (white) and of an occluder fixed to the
+            camera, a helmet or a mount (black), in the frames' own geometry; the compass, the refinement
+            and the search for the direction of travel leave the occluder out. ``None``: a dataset
+            sequence's own ``mask.png`` when it has one; ``False``: every pixel.
 
     Raises:
         InputError: for a value out of range or ``depth_from`` without ``refine``.
@@ -57,6 +61,7 @@ class OdometrySettings:
     align: AlignConfig = field(default_factory=AlignConfig)
     progress: bool = True
     pose_iterations: int | None = None
+    mask: str | os.PathLike[str] | bool | None = None
 
     def __post_init__(self) -> None:
         if self.keyframe_every < 1:
@@ -69,6 +74,8 @@ class OdometrySettings:
         height = self.camera_height
         if height is not None and not (math.isfinite(height) and height > 0):
             raise InputError(f"camera_height must be a positive number of metres, got {height}")
+        if self.mask is True:
+            raise InputError("mask: give the mask image's path, None (a sequence's own) or False (none)")
         if self.depth_from is not None and not self.refine:
             raise InputError("depth_from gives the refinement its depth: it needs refine=True (--refine)")
 

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..errors import ShapeError
 from ..evaluate.pose_metrics import step_from_window, window_centre
 from ..geometry import Camera, compass_yaw, invert, yaw_matrix
 from ..geometry.align import AlignConfig, align
@@ -81,6 +82,10 @@ class Tracker:
         depth_of: ground-truth depth for frames by index (``[1,h,w]`` at the view's size), or ``None``
             for the network's depth.
         on_depth: called with each chunk's indices and view depths (to write depth files).
+        mask: ``[1,1,H,W]`` at the network's size (``predictor.size``): 1 where the scene is seen, 0 on an
+            occluder fixed to the camera (a helmet, a mount), which the compass, the refinement and the
+            search for the direction of travel leave out, and which the networks see filled from the
+            pixels around it (:func:`~cylsfm.data.fill.fill_masked`); ``None``: every pixel.
     """
 
     def __init__(
@@ -91,6 +96,7 @@ class Tracker:
         options: TrackOptions,
         depth_of: Callable[[int], Tensor] | None = None,
         on_depth: DepthSink | None = None,
+        mask: Tensor | None = None,
     ) -> None:
         self.p = predictor
         self.camera = camera
@@ -106,6 +112,11 @@ class Tracker:
         self.on_depth = on_depth
         self.find_mount = options.find_mount and self.view.wraps
         self.k = (int(predictor.config.data.seq_length) - 1) // 2
+        w, h = predictor.size
+        if mask is not None and tuple(mask.shape) != (1, 1, h, w):
+            raise ShapeError(f"mask must be [1,1,{h},{w}] (the network's size), got {tuple(mask.shape)}")
+        self.mask = None if mask is None else mask.float().cpu()
+        self.masked = {"mask": self.mask} if self.mask is not None else {}  # for the networks
         self.times = Timings()
         self.images: dict[int, Tensor] = {}
         self.depths: dict[int, Tensor] = {}
@@ -164,9 +175,9 @@ class Tracker:
         with torch.inference_mode():
             tgt = images[k : images.shape[0] - k]
             src = torch.stack([images[o : o + len(tgt)] for o in range(2 * k + 1) if o != k], 1)
-            rel = self.p.poses(tgt, src, self.camera)
+            rel = self.p.poses(tgt, src, self.camera, **self.masked)
         length = float(rel[:, k, :3, 3].norm(dim=-1).median())  # the step after the target
-        found = mount_yaw(images, depth, self.view, length, self.align_config)
+        found = mount_yaw(images, depth, self.view, length, self.align_config, mask=self.mask)
         if found is not None:
             trusted = found.agreement >= MOUNT_AGREEMENT
             self.state.mount = (found.yaw if trusted else 0.0, found.agreement, found.pairs)
@@ -175,7 +186,7 @@ class Tracker:
         if self.depth_of is not None:
             return torch.stack([self.depth_of(i) for i in indices])
         with torch.inference_mode():
-            return self.p.depth(images, self.camera).float().clone()
+            return self.p.depth(images, self.camera, **self.masked).float().clone()
 
     def _windows(self, last_centre: int) -> None:
         """The pose network on every window whose centre is at most ``last_centre``."""
@@ -189,7 +200,7 @@ class Tracker:
                 [torch.stack([self.images[f] for f in range(c - k, c + k + 1) if f != c]) for c in chunk]
             )
             with torch.inference_mode():
-                rel = self.p.poses(tgt, src, self.camera, self.roll).double().cpu().numpy()
+                rel = self.p.poses(tgt, src, self.camera, self.roll, **self.masked).double().cpu().numpy()
             st.windows += list(rel)
         self.times.add("pose network", t)
 
@@ -219,8 +230,9 @@ class Tracker:
         src = self._view(torch.stack([self.images[j + 1] for j in chunk]))
         net = torch.from_numpy(nets)
         comp = net.clone()
+        mask = self._view(self.mask) if self.mask is not None else None
         if self.view.wraps:
-            comp[:, :3, :3] = yaw_matrix(compass_yaw(tgt, src), dtype=torch.float64)
+            comp[:, :3, :3] = yaw_matrix(compass_yaw(tgt, src, mask), dtype=torch.float64)
         t = self.times.add("compass", t)
         st.net += list(nets)
         st.compass += list(comp.numpy())
@@ -239,6 +251,7 @@ class Tracker:
         when every frame is a keyframe)."""
         st = self.state
         keys = [self._keyframe(j) for j in chunk]
+        mask = self._view(self.mask) if self.mask is not None else None
         tgt = self._view(torch.stack([self.images[key] for key in keys]))
         src = self._view(torch.stack([self.images[j + 1] for j in chunk]))
         init = []
@@ -253,11 +266,11 @@ class Tracker:
             turned = start.clone()
             same = self.every == 1
             turned[:, :3, :3] = (
-                consecutive_yaw if same else yaw_matrix(compass_yaw(tgt, src), dtype=torch.float64)
+                consecutive_yaw if same else yaw_matrix(compass_yaw(tgt, src, mask), dtype=torch.float64)
             )
             cands = torch.stack((start, turned), 1)
         depth = torch.stack([self.depths[key] for key in keys])
-        res = align(tgt, src, depth, cands, self.view, config=self.align_config)
+        res = align(tgt, src, depth, cands, self.view, config=self.align_config, mask=mask)
         st.refined += list(res.poses.cpu().numpy())
         st.cost += list(
             torch.stack((res.start_cost, res.cost, res.start.double(), res.valid.double()), 1).numpy()
@@ -269,7 +282,8 @@ class Tracker:
         if self.depth_of is None:
             return net
         with torch.inference_mode():
-            own = self.p.depth(torch.stack([self.images[j] for j in targets]), self.camera).float()
+            own = self.p.depth(torch.stack([self.images[j] for j in targets]), self.camera, **self.masked)
+            own = own.float()
         out = net.clone()
         for b, j in enumerate(targets):
             gt = self.depths[j]

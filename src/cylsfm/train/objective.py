@@ -15,6 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from ..data.dataset import camera_of
+from ..data.fill import fill_masked
 from ..geometry import Camera, pose_vec_to_mat
 from ..losses import LossConfig, view_synthesis_loss
 from ..nn import DispNet, PoseModel
@@ -37,6 +38,20 @@ class Batch:
     sources: Tensor
     camera: Camera
     mask: Tensor | None
+
+    def network_inputs(self) -> tuple[Tensor, Tensor]:
+        """``(target, sources)`` as the networks see them: the pixels outside the mask (an occluder fixed
+        to the camera) filled from their surroundings (:func:`~cylsfm.data.fill.fill_masked`), as at
+        inference; the loss compares the images themselves, within the mask."""
+        if self.mask is None:
+            return self.target, self.sources
+        b, s = self.sources.shape[:2]
+        tgt = fill_masked(self.target, self.mask)
+        per_source = self.mask.repeat_interleave(s, 0) if self.mask.shape[0] == b else self.mask
+        src = fill_masked(self.sources.flatten(0, 1), per_source).view_as(self.sources)
+        if self.target.is_contiguous(memory_format=torch.channels_last):
+            tgt = tgt.contiguous(memory_format=torch.channels_last)
+        return tgt, src
 
 
 def batch_on(sample: dict[str, Any], device: torch.device, fov: float, channels_last: bool) -> Batch:

@@ -247,7 +247,7 @@ class Trainer:
         with torch.autocast(
             self.device.type, dtype=self.amp_dtype or torch.float32, enabled=self.amp_dtype is not None
         ):
-            outputs = self.net(batch.target, batch.sources, self.step)
+            outputs = self.net(*batch.network_inputs(), self.step)
         return self.objective(batch, outputs)
 
     def train_step(self, batch: dict[str, Any]) -> tuple[dict[str, float], dict[str, Tensor]]:

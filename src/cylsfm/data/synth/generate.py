@@ -17,6 +17,7 @@ from ...runtime import progress_bar
 from ..format import SequenceWriter
 from ..splits import make_splits, split_path
 from .config import SynthConfig
+from .occluder import OCCLUDERS, occluder_mask, occluder_texture
 from .render import make_camera, render_frame
 from .town import StreetScene
 
@@ -39,6 +40,7 @@ def generate_dataset(
     overwrite: bool = False,
     splits: bool = False,
     split_fractions: Sequence[float] = (0.8, 0.1, 0.1),
+    occluder: str = "none",
 ) -> list[Path]:
     """Write ``sequences`` rides of ``frames`` frames each to ``out/seq_NNN`` in dataset format v1.
 
@@ -68,6 +70,9 @@ def generate_dataset(
             rendering anything; with it the split is written again over all the sequences in ``out``
             (adding sequences with ``first_index`` may therefore move earlier ones between parts).
         split_fractions: ``(train, val, test)``, non-negative, summing to 1.
+        occluder: ``"none"``, ``"helmet"`` or ``"roof"``: an object fixed to the camera in every frame
+            (:mod:`.occluder`), with no ground-truth depth (0) and left out by each sequence's
+            ``mask.png``.
 
     Returns:
         The sequence directories written.
@@ -75,13 +80,16 @@ def generate_dataset(
     Raises:
         InputError: an argument out of range (``sequences``, ``frames``, ``width``, ``height`` below 1,
             ``frames`` below 3, a negative ``first_index`` or ``workers``, ``config.supersample`` below 1,
-            an unknown ``projection``, invalid ``split_fractions``), or a sequence or split that already
+            an unknown ``projection`` or ``occluder``, invalid ``split_fractions``), or a sequence or split that already
             exists in ``out`` without ``overwrite``. Nothing is written then.
     """
     out = Path(out)
     base = config or SynthConfig()
-    _check_args(sequences, frames, width, height, first_index, workers, base, splits, split_fractions)
+    _check_args(
+        sequences, frames, width, height, first_index, workers, base, splits, split_fractions, occluder
+    )
     camera = make_camera(projection, width, height)
+    occ = occluder_mask(width, height, occluder) if occluder != "none" else None
     seq_dirs = [out / f"seq_{n:03d}" for n in range(first_index, first_index + sequences)]
     if not overwrite:
         _refuse_existing(out, seq_dirs, splits)
@@ -91,12 +99,8 @@ def generate_dataset(
     for n, seq_dir in zip(range(first_index, first_index + sequences), seq_dirs, strict=True):
         scene = StreetScene.generate(int(np.random.SeedSequence([seed, n]).generate_state(1)[0]), cfg)
         writer = SequenceWriter(seq_dir, camera, overwrite=overwrite)
-        bar = progress_bar(total=frames, desc=seq_dir.name, unit="frame", enabled=progress, leave=False)
-        try:
-            _render_into(writer, scene, camera, frames, workers, bar)
-        finally:
-            bar.close()
-        writer.finish(scene.c2w, np.arange(frames) / cfg.fps)
+        _render_into(writer, scene, camera, frames, workers, progress, occ)
+        writer.finish(scene.c2w, np.arange(frames) / cfg.fps, mask=None if occ is None else ~occ)
     if splits:
         make_splits(out, mode="sequence", fractions=tuple(split_fractions), seed=seed)
     return seq_dirs
@@ -112,8 +116,11 @@ def _check_args(
     config: SynthConfig,
     splits: bool,
     split_fractions: Sequence[float],
+    occluder: str,
 ) -> None:
     """Raise :class:`InputError` for an argument of :func:`generate_dataset` out of range."""
+    if occluder not in OCCLUDERS:
+        raise InputError(f"occluder must be one of {', '.join(OCCLUDERS)}, got {occluder!r}")
     for name, value in (("sequences", sequences), ("frames", frames), ("width", width), ("height", height)):
         if value < 1:
             raise InputError(f"{name} must be at least 1, got {value}")
@@ -151,18 +158,49 @@ def _refuse_existing(out: Path, seq_dirs: list[Path], splits: bool) -> None:
 
 
 def _render_into(
-    writer: SequenceWriter, scene: StreetScene, camera: Camera, frames: int, workers: int, bar
+    writer: SequenceWriter,
+    scene: StreetScene,
+    camera: Camera,
+    frames: int,
+    workers: int,
+    progress: bool,
+    occluder: np.ndarray | None = None,
 ) -> None:
     """Render the ``frames`` frames of ``scene`` and add them to ``writer`` in order, by ``workers``
-    processes (1: in this process); ``bar`` counts the frames written."""
+    processes (1: in this process), counting them on a progress bar. ``occluder`` ``bool [H,W]``: the
+    pixels painted with the occluder's texture (their depth unknown)."""
+    bar = progress_bar(total=frames, desc=writer.path.name, unit="frame", enabled=progress, leave=False)
+    try:
+        _render_frames(writer, scene, camera, frames, workers, bar, occluder)
+    finally:
+        bar.close()
+
+
+def _render_frames(
+    writer: SequenceWriter,
+    scene: StreetScene,
+    camera: Camera,
+    frames: int,
+    workers: int,
+    bar,
+    occluder: np.ndarray | None,
+) -> None:
     from concurrent.futures import ProcessPoolExecutor
+
+    texture = occluder_texture(*camera.size) if occluder is not None else None
+
+    def add(image: np.ndarray, depth: np.ndarray) -> None:
+        if occluder is not None:
+            image = np.where(occluder[..., None], texture, image)
+            depth = np.where(occluder, np.float32(0), depth)
+        writer.add_frame(image, depth)
+        bar.update(1)
 
     if workers <= 1:
         _init_worker(scene, camera)
         for f in range(frames):
             _, image, depth = _render_job(f)
-            writer.add_frame(image, depth)
-            bar.update(1)
+            add(image, depth)
         return
     results: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     nxt = 0
@@ -170,9 +208,8 @@ def _render_into(
         for f, image, depth in pool.map(_render_job, range(frames), chunksize=4):
             results[f] = (image, depth)
             while nxt in results:
-                writer.add_frame(*results.pop(nxt))
+                add(*results.pop(nxt))
                 nxt += 1
-                bar.update(1)
 
 
 _WORKER: dict[str, Any] = {}  # the scene and camera of a render process

@@ -99,7 +99,7 @@ class _Level:
     camera: Camera
     target: Tensor  # [B,1,h,w] grey, normalised
     source: Tensor  # [B,3,h,w] grey source and its two derivatives (d/du, d/dv); [B,4,h,w]: and where
-    # the source is free of the mask (1), eroded by a pixel so that no derivative reads the occluder
+    # the source is not free of the mask (1), dilated by a pixel so that no derivative reads the occluder
     points: Tensor  # [B,3,h,w] target points (from the depth)
     has_depth: Tensor  # [B,1,h,w] bool
     wrap: bool
@@ -129,12 +129,12 @@ def _grey(images: Tensor, mask: Tensor | None = None) -> Tensor:
     return (g - mean) / var.sqrt().clamp(min=1e-6)
 
 
-def _erode(clean: Tensor, wrap: bool) -> Tensor:
-    """``[B,1,h,w]`` float 0/1 -> the pixels whose 3x3 neighbourhood is all 1 (across the seam when
-    ``wrap``; the image's edge rows and columns count as clean)."""
-    x = circular_pad(clean, 1, 1) if wrap else F.pad(clean, (1, 1, 0, 0), mode="replicate")
+def _dilate(dirty: Tensor, wrap: bool) -> Tensor:
+    """``[B,1,h,w]`` float 0/1 -> 1 where any pixel of the 3x3 neighbourhood is 1 (across the seam when
+    ``wrap``; beyond the image's edges as at them)."""
+    x = circular_pad(dirty, 1, 1) if wrap else F.pad(dirty, (1, 1, 0, 0), mode="replicate")
     x = F.pad(x, (0, 0, 1, 1), mode="replicate")
-    return -F.max_pool2d(-x, 3, stride=1)
+    return F.max_pool2d(x, 3, stride=1)
 
 
 def _gradients(g: Tensor, wrap: bool) -> Tensor:
@@ -191,9 +191,9 @@ def _pyramid(
         d = torch.where(ok, d, torch.ones_like(d))
         grads = _gradients(src, wrap)
         if mask is not None:  # a pixel the occluder touches at this level is not used
-            clean = (mask > 0.999).float()
-            ok = ok & (clean > 0)
-            grads = torch.cat((grads, _erode(clean, wrap)), 1)
+            clean = mask > 0.999
+            ok = ok & clean
+            grads = torch.cat((grads, _dilate((~clean).float(), wrap)), 1)
         out.append(_Level(cam, tgt, grads, cam.unproject(d), ok, wrap))
     return out
 
@@ -205,7 +205,7 @@ def _linearize(lv: _Level, pose: Tensor) -> _Linear:
     valid = valid & lv.camera.projectable(points) & lv.has_depth
     usable = lv.has_depth.flatten(1).sum(1)
     if sampled.shape[1] == 4:  # the source's mask: what lands on it is hidden, neither compared nor lost
-        hidden = valid & (sampled[:, 3:] < 0.999)
+        hidden = valid & (sampled[:, 3:] > 0)  # any weight on a pixel near the occluder
         valid = valid & ~hidden
         usable = usable - hidden.flatten(1).sum(1)
     r = sampled[:, :1] - lv.target

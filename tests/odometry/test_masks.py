@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -155,7 +156,10 @@ def occluded(tmp_path_factory):
     writer = SequenceWriter(root / "b" / seq.name, seq.camera)
     for i, path in enumerate(seq.images):
         writer.add_frame(np.where(occ[..., None], other, load_image(path)), load_depth(seq.depth_path(i)))
-    writer.finish(seq.poses, seq.timestamps, mask=~occ)
+    writer.finish(mask=~occ)
+    shutil.copy(
+        seq.path / "poses.txt", root / "b" / seq.name / "poses.txt"
+    )  # the same ground truth, byte for byte
     return root / "a" / seq.name, root / "b" / seq.name
 
 
@@ -245,3 +249,30 @@ def test_the_mesh_has_no_vertex_on_the_occluder(occluded, ckpt, tmp_path):
     from plyfile import PlyData
 
     assert len(PlyData.read(str(out))["vertex"]) == int((~occ).sum())
+
+
+def test_evaluation_does_not_see_the_occluder(occluded, ckpt):
+    from cylsfm.evaluate.depth import evaluate_depth
+    from cylsfm.evaluate.pose import evaluate_pose
+
+    predictor = Predictor.from_checkpoint(ckpt, "cpu")
+    a, b = occluded
+    poses = [evaluate_pose(predictor, root.parent, split=None) for root in (a, b)]
+    assert poses[0]["model"] == poses[1]["model"] and poses[0]["compass"] == poses[1]["compass"]
+    depths = [evaluate_depth(predictor, root.parent, split=None, prior_split=None) for root in (a, b)]
+    assert depths[0]["model"] == depths[1]["model"]
+
+
+def test_training_inputs_are_filled_under_the_mask():
+    from cylsfm.train.objective import Batch
+
+    g = torch.Generator().manual_seed(3)
+    occ = torch.from_numpy(occluder_mask(64, 16, "roof"))
+    tgt, src = torch.rand(2, 3, 16, 64, generator=g), torch.rand(2, 2, 3, 16, 64, generator=g)
+    mask = torch.stack([(~occ).float(), torch.ones(16, 64)])[:, None]  # the second sample has none
+    one = Batch(_painted(tgt, occ, _texture(1, 64, 16)), _painted(src, occ, _texture(1, 64, 16)), CAM, mask)
+    two = Batch(_painted(tgt, occ, _texture(2, 64, 16)), _painted(src, occ, _texture(2, 64, 16)), CAM, mask)
+    (t1, s1), (t2, s2) = one.network_inputs(), two.network_inputs()
+    assert torch.equal(t1[0], t2[0]) and torch.equal(s1[0], s2[0])  # sample 0: the occluder filled
+    assert not torch.equal(t1[1], t2[1]) and torch.equal(t1[1], one.target[1])  # sample 1: as it is
+    assert Batch(tgt, src, CAM, None).network_inputs()[0] is tgt

@@ -48,5 +48,6 @@ def run_predict(args: argparse.Namespace) -> int:
         fps=args.fps,
     )
     videos = f" and {len(summary.videos)} preview video(s)" if summary.videos else ""
-    print(f"wrote {summary.total} depth maps of {len(summary.frames)} input(s){videos} to {args.out}")
+    kept = f" ({summary.resumed} of them kept from an interrupted run)" if summary.resumed else ""
+    print(f"wrote {summary.total} depth maps of {len(summary.frames)} input(s){videos} to {args.out}{kept}")
     return 0

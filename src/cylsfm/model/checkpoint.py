@@ -28,6 +28,7 @@ from ..errors import CylsfmError
 __all__ = [
     "FORMAT",
     "CheckpointError",
+    "checkpoint_id",
     "load_checkpoint",
     "resolve_checkpoint",
     "save_checkpoint",
@@ -51,6 +52,15 @@ def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
     if not p.exists():
         raise CheckpointError(f"{p}: checkpoint not found")
     return p
+
+
+def checkpoint_id(checkpoint: str | os.PathLike[str]) -> str:
+    """The checkpoint's resolved path, size and modification time: what a resumed output was computed
+    with (a different file, or the same path trained further, is another checkpoint)."""
+    p = Path(checkpoint).resolve()
+    f = p / "checkpoints" / "latest.pt" if p.is_dir() else p
+    stat = f.stat() if f.exists() else None
+    return f"{p} {stat.st_size if stat else 0} {stat.st_mtime_ns if stat else 0}"
 
 
 def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None:

@@ -26,6 +26,7 @@ from ..geometry import Camera, load_camera
 from ..geometry.align import resize_depth
 from ..geometry.ground import metric_scale
 from ..model import Predictor
+from ..model.checkpoint import checkpoint_id
 from ..model.plan import model_vfov_h, network_images, network_mask, plan_input
 from ..runtime import fingerprint, progress_bar
 from .frames import Ride, depth_files, open_ride
@@ -220,10 +221,7 @@ def _plan(ride: Ride, predictor: Predictor, camera: Any) -> Any:
 def _checkpoint_id(checkpoint: Any) -> str:
     if isinstance(checkpoint, Predictor):
         return f"predictor {id(checkpoint)}"
-    p = Path(checkpoint).resolve()
-    f = p / "checkpoints" / "latest.pt" if p.is_dir() else p
-    stat = f.stat() if f.exists() else None
-    return f"{p} {stat.st_size if stat else 0} {stat.st_mtime_ns if stat else 0}"
+    return checkpoint_id(checkpoint)
 
 
 def _depth_reader(files: list[Path], predictor: Predictor, camera: Camera):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import sys
@@ -14,28 +15,37 @@ from typing import Any
 import numpy as np
 import torch
 
+from .._version import __version__
+from ..atomic import atomic_write_text
 from ..data.convert import depth_to_camera
-from ..data.format import save_depth, save_png
+from ..data.format import load_depth, save_depth, save_png
 from ..data.inputs import InputSource, discover_inputs, expected_frames, read_frames
 from ..data.video import FALLBACK_RATE, VideoWriter
 from ..errors import InputError
 from ..export.colorize import colorize_depth, depth_picture, side_by_side
 from ..geometry import Camera, CylindricalCamera, load_camera
 from ..model import Predictor
+from ..model.checkpoint import checkpoint_id
 from ..model.plan import Plan, model_vfov_h, network_images, plan_input
-from ..runtime import progress_bar
+from ..runtime import fingerprint, progress_bar
 
 __all__ = ["PredictSummary", "predict"]
 
 PlanFor = Callable[[InputSource, tuple[int, int]], Plan]
 
 
+#: The settings of the outputs in ``OUT``: a run with the same settings continues where one stopped.
+MANIFEST = "predict.json"
+
+
 @dataclass
 class PredictSummary:
-    """What :func:`predict` wrote: frames per input name, and the preview videos."""
+    """What :func:`predict` wrote: frames per input name (``resumed``: of them, frames whose files an
+    interrupted run with the same settings had written already), and the preview videos."""
 
     frames: dict[str, int] = field(default_factory=dict)
     videos: list[Path] = field(default_factory=list)
+    resumed: int = 0
 
     @property
     def total(self) -> int:
@@ -116,13 +126,26 @@ def predict(
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    settings = {
+        "checkpoint": f"predictor {id(checkpoint)}"
+        if isinstance(checkpoint, Predictor)
+        else checkpoint_id(checkpoint),
+        "inputs": [str(s.path.resolve()) for s in sources],
+        "camera": cam.to_dict() if cam is not None else None,
+        "batch_size": batch_size,
+        "png": png,
+        "full_resolution": full_resolution,
+        "fps": fps,
+        "version": __version__,
+    }
+    resume = _same_settings(out / MANIFEST, settings)
     total = expected_frames(sources, fps)
     bar = progress_bar(total=total, desc="predict", unit="frame", enabled=progress, leave=True)
     summary = PredictSummary()
     try:
         with torch.inference_mode():
             for source in sources:
-                outputs = _Outputs(png, full_resolution)
+                outputs = _Outputs(png, full_resolution, resume)
                 _run_source(source, plan_for, predictor, out, batch_size, outputs, fps, bar, summary)
     finally:
         bar.close()
@@ -153,7 +176,12 @@ def _run_source(
     def flush() -> None:
         if batch:
             h, w = batch[0][1].shape[:2]
-            _run_batch(batch, plan_for(source, (w, h)), predictor, dest, outputs, writer)
+            plan = plan_for(source, (w, h))
+            if outputs.resume and all(outputs.written(dest, stem) for stem, _ in batch):
+                _preview_batch(batch, plan, predictor, dest, writer)  # (the same batches: the same values)
+                summary.resumed += len(batch)
+            else:
+                _run_batch(batch, plan, predictor, dest, outputs, writer)
             summary.frames[source.name] += len(batch)
             bar.update(len(batch))
             batch.clear()
@@ -202,10 +230,46 @@ def _run_batch(
             writer.write(side_by_side([shown[i], colorize_depth(depth[i])]))
 
 
+def _preview_batch(
+    batch: list[tuple[str, np.ndarray]],
+    plan: Plan,
+    predictor: Predictor,
+    dest: Path,
+    writer: VideoWriter | None,
+) -> None:
+    """A batch whose files an interrupted run wrote: only its frames of the video preview, from them."""
+    if writer is None:
+        return
+    images = network_images([rgb for _, rgb in batch], plan, predictor.device)
+    win = predictor.window(plan.network_input)
+    shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
+    for i, (stem, _) in enumerate(batch):
+        writer.write(side_by_side([shown[i], colorize_depth(load_depth(dest / f"{stem}.npy"))]))
+
+
+def _same_settings(path: Path, settings: dict[str, Any]) -> bool:
+    """Whether ``path`` records these settings (then finished frames are kept); records them either way."""
+    key = fingerprint(settings)
+    try:
+        same = json.loads(path.read_text()).get("fingerprint") == key
+    except (OSError, ValueError, AttributeError):
+        same = False
+    atomic_write_text(path, json.dumps({"fingerprint": key, **settings}, indent=1) + "\n")
+    return same
+
+
 @dataclass(frozen=True)
 class _Outputs:
     png: bool
     full: bool
+    resume: bool = False
+
+    def written(self, dest: Path, stem: str) -> bool:
+        """Whether every file of frame ``stem`` is there (each was written atomically: whole)."""
+        names = [f"{stem}.npy"] + [f"{stem}.png"] * self.png
+        if self.full:
+            names += [f"{stem}_full.npy"] + [f"{stem}_full.png"] * self.png
+        return all((dest / n).is_file() for n in names)
 
 
 def _full_resolution(depth: np.ndarray, plan: Plan, cam: Camera, fov: float) -> np.ndarray:

@@ -6,13 +6,14 @@ import hashlib
 import json
 import sys
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
 
 import torch
 
 from .errors import CylsfmError
 
-__all__ = ["fingerprint", "pick_device", "prefers_channels_last", "progress_bar"]
+__all__ = ["file_id", "fingerprint", "pick_device", "prefers_channels_last", "progress_bar"]
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -79,6 +80,13 @@ def progress_bar(
         dynamic_ncols=True,
         file=sys.stderr,
     )
+
+
+def file_id(path: Path) -> str:
+    """A file's resolved path, size and modification time (what a resumed result was computed from)."""
+    p = Path(path).resolve()
+    stat = p.stat() if p.exists() else None
+    return f"{p} {stat.st_size if stat else 0} {stat.st_mtime_ns if stat else 0}"
 
 
 def fingerprint(settings: dict[str, Any]) -> str:

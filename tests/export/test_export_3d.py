@@ -331,3 +331,74 @@ def test_cli_stereo_video_puts_the_left_eye_on_top(tmp_path):
     assert len(frames) == 2
     for frame in frames:
         assert _centre(frame[:H]) - _centre(frame[H:]) > 4.0  # 2 asin(0.5 / 3) is 6.8 columns
+
+
+def test_sigterm_stops_a_stereo_video_and_the_same_command_continues(tmp_path, monkeypatch, capsys):
+    """SIGTERM during the stereo pass of a video: exit status 143, the work so far kept in OUT.parts/ (every
+    frame's depth, the first pairs), no video; the same command continues without predicting or rendering
+    again what was done, removes the parts, and its video's frames equal an uninterrupted export's."""
+    import os
+    import signal
+
+    from cylsfm.export import stereo
+
+    rng = np.random.default_rng(4)
+    video = tmp_path / "in.mp4"
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("mpeg4", rate=5)
+        stream.width, stream.height, stream.pix_fmt = 128, 32, "yuv420p"
+        for _ in range(6):
+            frame = rng.integers(0, 256, (32, 128, 3), dtype=np.uint8)
+            for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode(None):
+            container.mux(packet)
+    ckpt = untrained_checkpoint(tmp_path)
+    args = ["export", "stereo", str(video), "--checkpoint", str(ckpt), "--device", "cpu", "--no-progress"]
+    assert main([*args, str(tmp_path / "whole.mp4")]) == 0
+    render, calls = stereo._render, {"n": 0}
+
+    def signalled(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return render(*a, **k)
+
+    monkeypatch.setattr(stereo, "_render", signalled)
+    capsys.readouterr()
+    out = tmp_path / "cut.mp4"
+    assert main([*args, str(out)]) == 143
+    assert "interrupted by SIGTERM" in capsys.readouterr().err
+    parts = tmp_path / "cut.mp4.parts"
+    assert not out.exists() and len(list((parts / "depth").iterdir())) == 6
+    pairs = sorted((parts / "frames").iterdir())
+    assert 2 <= len(pairs) < 6
+    import cylsfm.export.scene as scene_module
+
+    scene_function, predicted, rendered = scene_module.scene_function, {"n": 0}, {"n": 0}
+
+    def counting_scenes(*a, **k):
+        inner = scene_function(*a, **k)
+
+        def scene_of(rgb, depth=None):
+            predicted["n"] += depth is None
+            return inner(rgb, depth=depth)
+
+        return scene_of
+
+    def counting_render(*a, **k):
+        rendered["n"] += 1
+        return render(*a, **k)
+
+    monkeypatch.setattr(scene_module, "scene_function", counting_scenes)
+    monkeypatch.setattr(stereo, "_render", counting_render)
+    assert main([*args, str(out)]) == 0
+    assert predicted["n"] == 0 and rendered["n"] == 6 - len(pairs)  # nothing predicted or rendered twice
+    assert not parts.exists()
+
+    def frames(path):
+        with av.open(str(path)) as container:
+            return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+
+    a, b = frames(tmp_path / "whole.mp4"), frames(out)
+    assert len(a) == len(b) == 6 and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))

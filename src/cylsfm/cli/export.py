@@ -153,9 +153,17 @@ def _stereo_video(args: argparse.Namespace) -> int:
 
     if args.checkpoint is None:
         raise InputError(f"{args.pano}: stereo from a video needs --checkpoint (depth for every frame)")
+    from ..model.checkpoint import checkpoint_id
+    from ..runtime import file_id
+
     scene_of = scene_function(args.pano, args.checkpoint, args.camera, args.device, args.mask)
+    identity = {
+        "checkpoint": checkpoint_id(args.checkpoint),
+        "camera": file_id(args.camera) if args.camera else None,
+        "mask": file_id(args.mask) if args.mask else None,
+    }
     path, note = export_stereo_video(
-        args.pano, args.out, scene_of, _stereo_options(args), args.fps, not args.no_progress
+        args.pano, args.out, scene_of, _stereo_options(args), args.fps, not args.no_progress, identity
     )
     print(f"wrote {path} ({note})")
     return 0

@@ -193,7 +193,8 @@ def scene_function(
     label = str(camera) if isinstance(camera, str | os.PathLike) else str(where)
     plans: dict[tuple[int, int], tuple[object, torch.Tensor | None]] = {}
 
-    def scene_of(rgb: np.ndarray) -> Scene:
+    def scene_of(rgb: np.ndarray, depth: np.ndarray | None = None) -> Scene:
+        """The frame's scene; ``depth``: its depth as this function gave it before (no network then)."""
         size = (rgb.shape[1], rgb.shape[0])
         if size not in plans:
             p = plan_input(where, size, predictor, model_vfov_h(predictor.config), cam, label)
@@ -202,9 +203,10 @@ def scene_function(
         plan, seen = plans[size]
         with torch.inference_mode():
             images = network_images([rgb], plan, predictor.device)  # type: ignore[arg-type]
-            depth = predictor.depth(images, plan.network_input, seen)[0, 0].float().cpu().numpy()  # type: ignore[attr-defined]
-        if seen is not None:
-            depth = np.where(seen[0, 0].numpy() > 0, depth, np.float32(0))
+            if depth is None:
+                depth = predictor.depth(images, plan.network_input, seen)[0, 0].float().cpu().numpy()  # type: ignore[attr-defined]
+                if seen is not None:
+                    depth = np.where(seen[0, 0].numpy() > 0, depth, np.float32(0))
         net_cam = plan.network_input  # type: ignore[attr-defined]
         assert isinstance(net_cam, CylindricalCamera)
         if not np.isfinite(depth).all():

@@ -9,18 +9,23 @@ the median of the frames' ground fits), never per frame, so the stereo does not 
 
 from __future__ import annotations
 
+import json
 import os
-from dataclasses import dataclass
+import shutil
+from dataclasses import asdict, dataclass
 from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from ..data.io import save_png
+from ..atomic import atomic_write_text
+from ..data.io import load_depth, load_image, save_depth, save_png
 from ..errors import CylsfmError, InputError
 from ..geometry import Camera, EquirectangularCamera
 from ..geometry.ground import ground_height, metric_scale
+from ..runtime import file_id, fingerprint
 from .ods import anaglyph, ods_pair, stereo_layout
 from .scene import Scene
 
@@ -127,43 +132,90 @@ def export_stereo_video(
     options: StereoOptions,
     fps: float | None = None,
     progress: bool = True,
+    identity: dict[str, Any] | None = None,
 ) -> tuple[Path, str]:
     """Render every frame of ``video`` in stereo into the video ``out`` (H.264 where available).
 
-    ``scene_of(rgb) -> Scene`` gives a frame's scene (the network's depth). Two passes over the video: the
-    first predicts every frame's depth for the clip's one scale (keeping only a sample of it), the
-    second decodes and predicts again and renders (so that no clip is held in memory). Returns ``(out,
-    the scale's note)``.
+    ``scene_of(rgb, depth=None) -> Scene`` gives a frame's scene (the network's depth; with ``depth``, the
+    one it gave before). The work is kept in ``OUT.parts/`` as it goes: every frame's depth (the first
+    pass, which also gathers the clip's one scale), then every frame's stereo pair; the video is encoded
+    from them at the end and the folder removed. An interrupted export (Ctrl-C, SIGTERM, a full disk)
+    leaves the folder, and the same command continues from it: the result equals an uninterrupted run's.
+    ``identity``: what else decides the result (the checkpoint, the camera, the mask): parts made with
+    other settings are discarded. Returns ``(out, the scale's note)``.
     """
     from ..data.inputs import discover_inputs, read_frames
-    from ..data.video import FALLBACK_RATE, VideoWriter
+    from ..data.video import FALLBACK_RATE
     from ..runtime import progress_bar
 
     options.check()
     (source,) = discover_inputs([video])
     if source.kind != "video":
         raise CylsfmError(f"{video}: not a video")
-    stats = _ClipStatistics(options)
+    out = Path(out)
+    parts = _parts(
+        out, {"video": file_id(Path(video)), "options": asdict(options), "fps": fps, **(identity or {})}
+    )
+    stats, stems = _ClipStatistics(options), []
     with progress_bar(desc="depth", unit="frame", enabled=progress) as bar:
-        for _, rgb in read_frames(source, fps):
-            stats.add(scene_of(rgb))  # type: ignore[operator]
+        for stem, rgb in read_frames(source, fps):
+            stats.add(_scene(scene_of, rgb, parts / "depth" / f"{stem}.npy"))
+            stems.append(stem)
             bar.update(1)
-    if not stats.samples:
+    if not stems:
         raise CylsfmError(f"{video}: no frames")
     factor, note = stats.factor()
     unit_of = "metres" if options.camera_height is not None else None
-    rate = Fraction(fps).limit_denominator(1001) if fps else (source.rate or FALLBACK_RATE)
-    writer = VideoWriter(Path(out), rate)
-    try:
-        with progress_bar(total=len(stats.samples), desc="stereo", unit="frame", enabled=progress) as bar:
-            for _, rgb in read_frames(source, fps):
-                scene = scene_of(rgb)  # type: ignore[operator]
+    with progress_bar(total=len(stems), desc="stereo", unit="frame", enabled=progress) as bar:
+        for stem, rgb in read_frames(source, fps):
+            frame = parts / "frames" / f"{stem}.png"
+            if not frame.is_file():
+                scene = _scene(scene_of, rgb, parts / "depth" / f"{stem}.npy")
                 scene = scene.at_width(options.width) if options.width else scene
-                pair, _ = _render(scene.scaled(factor, unit_of or scene.unit, note), options)
-                writer.write(pair)
-                bar.update(1)
+                save_png(frame, _render(scene.scaled(factor, unit_of or scene.unit, note), options)[0])
+            bar.update(1)
+    rate = Fraction(fps).limit_denominator(1001) if fps else (source.rate or FALLBACK_RATE)
+    _encode(out, rate, [parts / "frames" / f"{stem}.png" for stem in stems])
+    shutil.rmtree(parts)
+    return out, note
+
+
+def _scene(scene_of: Any, rgb: np.ndarray, depth_file: Path) -> Scene:
+    """The frame's scene, its depth kept in ``depth_file`` (predicted and written once)."""
+    if depth_file.is_file():
+        return scene_of(rgb, depth=load_depth(depth_file))
+    scene = scene_of(rgb)
+    save_depth(depth_file, scene.depth)
+    return scene
+
+
+def _parts(out: Path, settings: dict[str, Any]) -> Path:
+    """``OUT.parts/``: the work of an export of ``out``, kept when its settings are these, else emptied."""
+    parts = out.with_name(out.name + ".parts")
+    manifest = parts / "settings.json"
+    key = fingerprint(settings)
+    try:
+        same = json.loads(manifest.read_text()).get("fingerprint") == key
+    except (OSError, ValueError, AttributeError):
+        same = False
+    if not same and parts.exists():
+        shutil.rmtree(parts)
+    for sub in ("depth", "frames"):
+        (parts / sub).mkdir(parents=True, exist_ok=True)
+    if not same:
+        atomic_write_text(manifest, json.dumps({"fingerprint": key, **settings}, default=str) + "\n")
+    return parts
+
+
+def _encode(out: Path, rate: Fraction, frames: list[Path]) -> None:
+    """The video ``out`` from the frame images, in order (written aside and moved in place at the end)."""
+    from ..data.video import VideoWriter
+
+    writer = VideoWriter(out, rate)
+    try:
+        for frame in frames:
+            writer.write(load_image(frame))
         writer.close()
     except BaseException:
         writer.abort()
         raise
-    return Path(out), note

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import torch
@@ -21,3 +22,46 @@ def untrained_checkpoint(directory: Path, width: int = 128, height: int = 32, fo
     state = {"config": config_to_dict(cfg), "step": 0, "disp_net": disp.state_dict()}
     save_checkpoint(path, {**state, "pose_net": pose.state_dict()})
     return path
+
+
+def failing_writes(monkeypatch, pattern: str, error: int) -> None:
+    """From now on, atomic writes (:func:`cylsfm.atomic.atomic_open`) of files whose name matches the glob
+    ``pattern`` fail as on a full disk (``errno.ENOSPC``: the first write raises) or a read-only directory
+    (``errno.EROFS``: the temporary file cannot be created)."""
+    import fnmatch
+    import os
+    import tempfile
+
+    real_mkstemp, real_fdopen, doomed = tempfile.mkstemp, os.fdopen, set()
+
+    class _Full:
+        def __init__(self, fh):
+            self.fh = fh
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return self.fh.__exit__(*exc)
+
+        def write(self, data):
+            raise OSError(error, os.strerror(error))
+
+        def __getattr__(self, name):
+            return getattr(self.fh, name)
+
+    def mkstemp(*args, prefix="", **kwargs):
+        if fnmatch.fnmatch(prefix[1:-1], pattern):
+            if error != errno.ENOSPC:
+                raise OSError(error, os.strerror(error))
+            fd, tmp = real_mkstemp(*args, prefix=prefix, **kwargs)
+            doomed.add(fd)
+            return fd, tmp
+        return real_mkstemp(*args, prefix=prefix, **kwargs)
+
+    def fdopen(fd, *args, **kwargs):
+        fh = real_fdopen(fd, *args, **kwargs)
+        return _Full(fh) if fd in doomed else fh
+
+    monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
+    monkeypatch.setattr(os, "fdopen", fdopen)

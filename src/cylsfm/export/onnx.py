@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ..atomic import atomic_write_bytes
 from ..errors import CylsfmError
 from ..geometry import CylindricalCamera
 from ..model import Predictor, load_models
@@ -66,7 +67,8 @@ def export_onnx(model: nn.Module, example: Tensor, out: str | os.PathLike[str], 
     """Export ``model`` (one image input ``[B,3,H,W]`` -> ``depth``) to ``out`` with a dynamic batch size.
 
     The wrap padding is traced in standard operators (:func:`~cylsfm.nn.padding.standard_ops`); the file
-    is written beside ``out`` and renamed, so a reader never sees half a model.
+    is written atomically (:mod:`cylsfm.atomic`), so a reader never sees half a model and a full disk
+    keeps a previous one.
     """
     try:
         with standard_ops(), torch.no_grad(), warnings.catch_warnings():
@@ -82,14 +84,7 @@ def export_onnx(model: nn.Module, example: Tensor, out: str | os.PathLike[str], 
             )
     except ImportError as exc:
         raise CylsfmError(f"ONNX export needs the onnx and onnxscript packages ({exc})") from None
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    try:
-        program.save(str(tmp))
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_write_bytes(out, program.model_proto.SerializeToString())  # (the initializers included)
 
 
 def export_depth_onnx(

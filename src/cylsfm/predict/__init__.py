@@ -11,6 +11,8 @@ name; a second input of the same name becomes ``NAME-2``) the outputs are::
     OUT/NAME/FRAME_full.npy, FRAME_full.png   with --full-resolution: the depth in the input's own camera
                          and size (0 where the model does not see), and its picture
     OUT/NAME.mp4         videos only: input frame above its coloured depth (h264, or mpeg4 without libx264)
+    OUT/predict.json     the run's settings: the same command after an interruption (Ctrl-C, SIGTERM, a
+                         full disk) keeps the frames already written and predicts the rest
 
 ``FRAME`` is an image's file stem, or a video frame's 6-digit index in the video (counted before ``fps``
 subsampling). Every file is written atomically (a temporary file, then ``os.replace``), so an interrupted or

@@ -95,6 +95,9 @@ def predict(
             every frame, at the video's own rate.
         progress: show a progress bar on stderr.
 
+    ``OUT/predict.json`` records the settings: the same command after an interruption keeps the frames
+    already written (in whole batches) and predicts the rest, as an uninterrupted run would.
+
     Raises:
         InputError: ``batch_size`` below 1, ``fps`` not a positive number.
         CylsfmError: an input is missing, unreadable or corrupt, or its camera does not suit the model;
@@ -126,19 +129,8 @@ def predict(
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    settings = {
-        "checkpoint": f"predictor {id(checkpoint)}"
-        if isinstance(checkpoint, Predictor)
-        else checkpoint_id(checkpoint),
-        "inputs": [str(s.path.resolve()) for s in sources],
-        "camera": cam.to_dict() if cam is not None else None,
-        "batch_size": batch_size,
-        "png": png,
-        "full_resolution": full_resolution,
-        "fps": fps,
-        "version": __version__,
-    }
-    resume = _same_settings(out / MANIFEST, settings)
+    options = {"batch_size": batch_size, "png": png, "full_resolution": full_resolution, "fps": fps}
+    resume = _same_settings(out / MANIFEST, _settings(checkpoint, sources, cam, options))
     total = expected_frames(sources, fps)
     bar = progress_bar(total=total, desc="predict", unit="frame", enabled=progress, leave=True)
     summary = PredictSummary()
@@ -245,6 +237,19 @@ def _preview_batch(
     shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
     for i, (stem, _) in enumerate(batch):
         writer.write(side_by_side([shown[i], colorize_depth(load_depth(dest / f"{stem}.npy"))]))
+
+
+def _settings(checkpoint: Any, sources: list[InputSource], camera: Camera | None, options: dict) -> dict:
+    """What decides the outputs: the checkpoint, the inputs, the camera, the options, the version."""
+    return {
+        "checkpoint": f"predictor {id(checkpoint)}"
+        if isinstance(checkpoint, Predictor)
+        else checkpoint_id(checkpoint),
+        "inputs": [str(s.path.resolve()) for s in sources],
+        "camera": camera.to_dict() if camera is not None else None,
+        **options,
+        "version": __version__,
+    }
 
 
 def _same_settings(path: Path, settings: dict[str, Any]) -> bool:

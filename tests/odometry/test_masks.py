@@ -276,3 +276,21 @@ def test_training_inputs_are_filled_under_the_mask():
     assert torch.equal(t1[0], t2[0]) and torch.equal(s1[0], s2[0])  # sample 0: the occluder filled
     assert not torch.equal(t1[1], t2[1]) and torch.equal(t1[1], one.target[1])  # sample 1: as it is
     assert Batch(tgt, src, CAM, None).network_inputs()[0] is tgt
+
+
+def test_predict_with_the_mask_does_not_see_the_occluder(occluded, ckpt, tmp_path):
+    a, b = occluded
+    occ = occluder_mask(128, 32, "helmet")
+    for seq, out in ((a, tmp_path / "a"), (b, tmp_path / "b")):
+        args = ["predict", str(seq / "images"), "--checkpoint", str(ckpt), "--out", str(out)]
+        assert main([*args, "--mask", str(seq / "mask.png"), "--device", "cpu", "--no-png"]) == 0
+    for name in ("000000.npy", "000007.npy"):
+        da, db = np.load(tmp_path / "a" / "images" / name), np.load(tmp_path / "b" / "images" / name)
+        assert np.array_equal(da, db) and (da[occ] == 0).all() and (da[~occ] > 0).all()
+    wrong = tmp_path / "square.png"
+    from PIL import Image
+
+    Image.fromarray(np.full((8, 8), 255, np.uint8)).save(wrong)
+    args = ["predict", str(a / "images"), "--checkpoint", str(ckpt), "--out", str(tmp_path / "c")]
+    assert main([*args, "--mask", str(wrong), "--device", "cpu"]) == 2
+    assert not (tmp_path / "c" / "images").exists()  # refused before anything was written

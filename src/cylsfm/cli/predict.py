@@ -18,6 +18,12 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
         "panoramas (pinhole photographs, partial panoramas) are taken only when they cover the view of a "
         "model trained on crops (train --fov)",
     )
+    p.add_argument(
+        "--mask",
+        metavar="IMAGE",
+        help="white where the inputs see the scene, black on the camera's own mount or helmet (the inputs' "
+        "aspect ratio): the network sees it filled, its depth is written as 0 (unknown)",
+    )
     p.add_argument("--batch-size", type=int, default=8, help="frames per network call (default 8)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument(
@@ -46,6 +52,7 @@ def run_predict(args: argparse.Namespace) -> int:
         png=not args.no_png,
         full_resolution=args.full_resolution,
         fps=args.fps,
+        mask=args.mask,
     )
     videos = f" and {len(summary.videos)} preview video(s)" if summary.videos else ""
     kept = f" ({summary.resumed} of them kept from an interrupted run)" if summary.resumed else ""

@@ -6,7 +6,7 @@ import json
 import math
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -26,12 +26,10 @@ from ..export.colorize import colorize_depth, depth_picture, side_by_side
 from ..geometry import Camera, CylindricalCamera, load_camera
 from ..model import Predictor
 from ..model.checkpoint import checkpoint_id
-from ..model.plan import Plan, model_vfov_h, network_images, plan_input
-from ..runtime import fingerprint, progress_bar
+from ..model.plan import Plan, model_vfov_h, network_images, network_mask, plan_input
+from ..runtime import file_id, fingerprint, progress_bar
 
 __all__ = ["PredictSummary", "predict"]
-
-PlanFor = Callable[[InputSource, tuple[int, int]], Plan]
 
 
 #: The settings of the outputs in ``OUT``: a run with the same settings continues where one stopped.
@@ -77,6 +75,7 @@ def predict(
     fps: float | None = None,
     progress: bool = True,
     full_resolution: bool = False,
+    mask: str | os.PathLike[str] | None = None,
 ) -> PredictSummary:
     """Predict depth for images, image folders and videos; see :mod:`cylsfm.predict` for the outputs.
 
@@ -94,6 +93,9 @@ def predict(
         fps: take about this many frames a second from videos (and give the preview this rate); ``None``:
             every frame, at the video's own rate.
         progress: show a progress bar on stderr.
+        mask: an image of the inputs' aspect ratio, white where they see the scene and black on an occluder
+            fixed to the camera (a helmet, a mount): the network sees it filled from the pixels around it,
+            and its depth is written as 0 (unknown).
 
     ``OUT/predict.json`` records the settings: the same command after an interruption keeps the frames
     already written (in whole batches) and predicts the rest, as an uninterrupted run would.
@@ -112,24 +114,15 @@ def predict(
     predictor = (
         checkpoint if isinstance(checkpoint, Predictor) else Predictor.from_checkpoint(checkpoint, device)
     )
-    vfov_h = model_vfov_h(predictor.config)
-    plans: dict[tuple[str, tuple[int, int]], Plan] = {}
-
-    def plan_for(source: InputSource, size: tuple[int, int]) -> Plan:
-        key = (source.name, size)
-        if key not in plans:
-            plans[key] = plan_input(source.path, size, predictor, vfov_h, cam, camera_path)
-            if plans[key].note:
-                print(f"{source.path}: {plans[key].note}", file=sys.stderr)
-        return plans[key]
-
-    for source in sources:  # refuse unsuitable inputs before writing anything
+    plan_for = _Plans(predictor, cam, camera_path, Path(mask) if mask is not None else None)
+    for source in sources:  # refuse unsuitable inputs (and masks) before writing anything
         for size in source.sizes:
-            plan_for(source, size)
+            plan_for.mask(source, size)
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     options = {"batch_size": batch_size, "png": png, "full_resolution": full_resolution, "fps": fps}
+    options["mask"] = file_id(Path(mask)) if mask is not None else None
     resume = _same_settings(out / MANIFEST, _settings(checkpoint, sources, cam, options))
     total = expected_frames(sources, fps)
     bar = progress_bar(total=total, desc="predict", unit="frame", enabled=progress, leave=True)
@@ -144,9 +137,42 @@ def predict(
     return summary
 
 
+class _Plans:
+    """Each input's :class:`Plan` per frame size (its note printed once), and the mask in its network
+    input (``None`` without a mask)."""
+
+    def __init__(
+        self, predictor: Predictor, camera: Camera | None, camera_path: str | None, mask: Path | None
+    ):
+        self.predictor, self.camera, self.camera_path, self.mask_file = predictor, camera, camera_path, mask
+        self.vfov_h = model_vfov_h(predictor.config)
+        self.plans: dict[tuple[str, tuple[int, int]], Plan] = {}
+        self.masks: dict[tuple[str, tuple[int, int]], torch.Tensor | None] = {}
+
+    def __call__(self, source: InputSource, size: tuple[int, int]) -> Plan:
+        key = (source.name, size)
+        if key not in self.plans:
+            plan = plan_input(source.path, size, self.predictor, self.vfov_h, self.camera, self.camera_path)
+            self.plans[key] = plan
+            if plan.note:
+                print(f"{source.path}: {plan.note}", file=sys.stderr)
+        return self.plans[key]
+
+    def mask(self, source: InputSource, size: tuple[int, int]) -> torch.Tensor | None:
+        key = (source.name, size)
+        if key not in self.masks:
+            plan = self(source, size)
+            self.masks[key] = (
+                None
+                if self.mask_file is None
+                else network_mask(self.mask_file, size, plan, plan.network_input.size)
+            )
+        return self.masks[key]
+
+
 def _run_source(
     source: InputSource,
-    plan_for: PlanFor,
+    plan_for: _Plans,
     predictor: Predictor,
     out: Path,
     batch_size: int,
@@ -173,7 +199,7 @@ def _run_source(
                 _preview_batch(batch, plan, predictor, dest, writer)  # (the same batches: the same values)
                 summary.resumed += len(batch)
             else:
-                _run_batch(batch, plan, predictor, dest, outputs, writer)
+                _run_batch(batch, plan, plan_for.mask(source, (w, h)), predictor, dest, outputs, writer)
             summary.frames[source.name] += len(batch)
             bar.update(len(batch))
             batch.clear()
@@ -197,6 +223,7 @@ def _run_source(
 def _run_batch(
     batch: list[tuple[str, np.ndarray]],
     plan: Plan,
+    seen: torch.Tensor | None,
     predictor: Predictor,
     dest: Path,
     outputs: _Outputs,
@@ -206,8 +233,11 @@ def _run_batch(
     depth, the video preview)."""
     images = network_images([rgb for _, rgb in batch], plan, predictor.device)
     cam = plan.network_input
-    depth = predictor.depth(images, cam)[:, 0].float().cpu().numpy()
     win = predictor.window(cam)
+    depth = predictor.depth(images, cam, **({"mask": seen} if seen is not None else {}))[:, 0]
+    if seen is not None:  # the occluder's depth: unknown
+        depth = depth * (seen if win is None else seen[..., win[0] : win[1]])[:, 0].to(depth.device)
+    depth = depth.float().cpu().numpy()
     shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
     full = _full_resolution(depth, plan, cam, predictor.fov) if outputs.full else None
     for i, (stem, rgb) in enumerate(batch):

@@ -85,6 +85,7 @@ SKIPPED = {
     "torchrun": "starts one process per device; data-parallel training is tested in tests/train/test_train_loop.py",
     ".venv/bin/python": "installs a CUDA build of torch into the virtual environment, or asks it for CUDA",
     "cylsfm train --data data/synth --out runs/gpu": "needs a CUDA device",
+    "ns-train": "nerfstudio's trainer, installed on its own; what it reads is tested in tests/export/test_colmap.py",
 }
 
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)

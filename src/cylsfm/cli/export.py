@@ -32,8 +32,37 @@ def _depth_source(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N (default auto)")
 
 
+def _colmap_args(sub) -> None:
+    c = sub.add_parser(
+        "colmap",
+        help="a ride as a COLMAP model and a nerfstudio transforms.json (virtual pinhole views, posed by the "
+        "ride's odometry, with points from the depth): for Gaussian splatting and NeRF trainers",
+    )
+    c.add_argument("input", metavar="INPUT", help="a video file, a folder of frames, or a dataset sequence")
+    c.add_argument("out", metavar="OUT", help="the folder to write: images/, sparse/0/, transforms.json")
+    c.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
+    c.add_argument("--refine", action="store_true", help="refine the odometry (as cylsfm odometry --refine)")
+    c.add_argument("--camera", help="camera.json of the frames (as for cylsfm odometry)")
+    c.add_argument("--camera-height", type=float, metavar="METRES", help="poses and points in metres")
+    c.add_argument("--fps", type=float, help="take about N frames a second from a video")
+    c.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
+    c.add_argument(
+        "--mask", metavar="IMAGE", help="the camera's own mount or helmet (black): no points from it"
+    )
+    c.add_argument(
+        "--views", type=int, default=4, help="pinhole views per panorama, turned evenly (default 4)"
+    )
+    c.add_argument("--fov", type=float, default=90.0, help="the views' horizontal field of view (default 90)")
+    c.add_argument("--view-size", type=int, default=512, help="the views' width and height (default 512)")
+    c.add_argument("--points-per-frame", type=int, default=2000, help="3D points from each depth map")
+    c.add_argument("--image-format", choices=["jpg", "png"], default="jpg", help="the views' files")
+    c.add_argument("--text", action="store_true", help="also write the COLMAP model as text")
+    c.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
 def _export_args(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="action", required=True, metavar="{onnx,mesh,stereo,viewer}")
+    sub = p.add_subparsers(dest="action", required=True, metavar="{onnx,mesh,stereo,viewer,colmap}")
     onnx = sub.add_parser(
         "onnx",
         help="the depth network as ONNX (image [B,3,H,W] in [0,1] -> depth [B,1,H,W]), wrap padding in "
@@ -57,6 +86,7 @@ def _export_args(p: argparse.ArgumentParser) -> None:
     )
     mesh.add_argument("--max-depth", type=float, help="leave out pixels farther than this (e.g. the sky)")
 
+    _colmap_args(sub)
     st = sub.add_parser("stereo", help="omni-directional stereo panoramas (image or video) for VR")
     st.add_argument("pano", metavar="PANO", help="a panorama image, or a video (needs --checkpoint)")
     st.add_argument("out", metavar="OUT", help="the image (.png) or video (.mp4) to write")
@@ -86,10 +116,16 @@ def _viewer_args(sub) -> None:
     vw.add_argument("--max-ratio", type=float, default=1.2, help="as for export mesh (default 1.2)")
 
 
-@command("export", "export a model (ONNX) or a panorama's depth (mesh, VR stereo, web viewer)", _export_args)
+@command(
+    "export",
+    "export a model (ONNX), a panorama's depth (mesh, VR stereo, web viewer) or a ride (COLMAP, nerfstudio)",
+    _export_args,
+)
 def run_export(args: argparse.Namespace) -> int:
     if args.action == "onnx":
         return _onnx(args)
+    if args.action == "colmap":
+        return _colmap(args)
     from ..export.scene import load_scene
 
     if args.action == "stereo" and _is_video(args.pano):
@@ -166,6 +202,36 @@ def _stereo_video(args: argparse.Namespace) -> int:
         args.pano, args.out, scene_of, _stereo_options(args), args.fps, not args.no_progress, identity
     )
     print(f"wrote {path} ({note})")
+    return 0
+
+
+def _colmap(args: argparse.Namespace) -> int:
+    from ..export.colmap import ViewOptions
+    from ..odometry import OdometrySettings, export_colmap
+
+    settings = OdometrySettings(
+        camera=args.camera,
+        refine=args.refine,
+        camera_height=args.camera_height,
+        fps=args.fps,
+        stride=args.stride,
+        device=args.device,
+        progress=not args.no_progress,
+        mask=args.mask,
+    )
+    views = ViewOptions(
+        yaws=args.views,
+        fov=args.fov,
+        width=args.view_size,
+        points_per_frame=args.points_per_frame,
+        image_format=args.image_format,
+        text=args.text,
+    )
+    s = export_colmap(args.input, args.checkpoint, args.out, settings, views)
+    print(
+        f"wrote {args.out}: {s['images']} views of {s['panoramas']} panoramas, {s['points']} points ({s['unit']}); "
+        "COLMAP model in sparse/0, nerfstudio's transforms.json"
+    )
     return 0
 
 

@@ -36,6 +36,7 @@ import types
 
 from ..geometry.align import AlignConfig, AlignResult, align
 from ..geometry.ground import ground_height, metric_scale
+from .colmap import export_colmap
 from .frames import Ride, open_ride
 from .run import OdometryResult, odometry
 from .settings import OdometrySettings
@@ -47,6 +48,7 @@ __all__ = [
     "OdometrySettings",
     "Ride",
     "align",
+    "export_colmap",
     "ground_height",
     "metric_scale",
     "odometry",

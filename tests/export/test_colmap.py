@@ -1,0 +1,148 @@
+"""``cylsfm export colmap``: a ride as a COLMAP model and a nerfstudio transforms.json, checked with
+pycolmap's own reader and camera model, and against the conventions written out here in closed form."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from cylsfm.cli import main
+from cylsfm.data.format import load_depth
+from cylsfm.data.io import read_tum
+from cylsfm.data.synth import generate_dataset
+from cylsfm.export.colmap import ViewOptions, view_rotations
+from helpers import untrained_checkpoint
+
+pycolmap = pytest.importorskip("pycolmap")
+
+VIEW = 64  # the views' size in pixels (90 degrees: f = 32)
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    root = tmp_path_factory.mktemp("colmap")
+    generate_dataset(
+        root / "data", sequences=1, frames=8, width=128, height=32, seed=4, workers=1, progress=False
+    )
+    ckpt = untrained_checkpoint(root)
+    out = root / "out"
+    args = ["export", "colmap", str(root / "data" / "seq_000"), str(out), "--checkpoint", str(ckpt)]
+    args += [
+        "--view-size",
+        str(VIEW),
+        "--points-per-frame",
+        "300",
+        "--device",
+        "cpu",
+        "--no-progress",
+        "--text",
+    ]
+    assert main(args) == 0
+    return root / "data" / "seq_000", out
+
+
+def _pano_from_view(k: int, yaws: int = 4) -> np.ndarray:
+    """Written out: view k looks along azimuth 2 pi k / yaws (atan2(x, z), to the right)."""
+    a = 2 * math.pi * k / yaws
+    return np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+
+
+def test_the_model_reads_back_with_every_pose_as_the_trajectory_says(exported):
+    _, out = exported
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    c2w = read_tum(out / "odometry" / "trajectory.txt")[1]
+    assert (
+        rec.num_frames() == 8 and rec.num_images() == 32 and rec.num_rigs() == 1 and rec.num_points3D() > 500
+    )
+    assert len(list((out / "images").iterdir())) == 32  # flat, unique names
+    for image in rec.images.values():
+        frame, k = int(image.name[:6]), int(image.name[7:9])
+        world_from_view = c2w[frame].copy()
+        world_from_view[:3, :3] = world_from_view[:3, :3] @ _pano_from_view(k)
+        expected = np.linalg.inv(world_from_view)[:3]
+        np.testing.assert_allclose(image.cam_from_world().matrix(), expected, atol=1e-9)
+    for camera in rec.cameras.values():  # what Gaussian-splatting trainers take: PINHOLE, centred
+        assert camera.model == pycolmap.CameraModelId.PINHOLE
+        assert list(camera.params) == pytest.approx([VIEW / 2, VIEW / 2, VIEW / 2, VIEW / 2])
+    text = (out / "sparse" / "0" / "images.txt").read_text().splitlines()
+    first = next(line for line in text if not line.startswith("#")).split()
+    q = rec.images[int(first[0])].cam_from_world().rotation.quat  # pycolmap: x, y, z, w
+    assert [float(x) for x in first[1:5]] == pytest.approx([q[3], q[0], q[1], q[2]])  # the file: w first
+
+
+def test_every_point_projects_onto_its_keypoints(exported):
+    _, out = exported
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    worst = 0.0
+    for point in rec.points3D.values():
+        assert point.track.length() >= 1
+        for el in point.track.elements:
+            image = rec.images[el.image_id]
+            xy = image.project_point(point.xyz)  # pycolmap's own camera model
+            worst = max(worst, float(np.abs(xy - image.points2D[el.point2D_idx].xy).max()))
+    assert worst < 1e-6
+
+
+def test_a_cylinder_pixel_lands_where_the_closed_form_says(exported):
+    """From a pixel of a panorama's depth map, by the conventions alone (cylinder: theta = (u - cx)/fx,
+    h = (v - cy)/fy, p = d (sin theta, h, cos theta); pinhole with COLMAP's pixel centres at +0.5), to the
+    keypoint the model records for that point."""
+    _, out = exported
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    c2w = read_tum(out / "odometry" / "trajectory.txt")[1]
+    xyz = np.array([p.xyz for p in rec.points3D.values()])
+    ids = list(rec.points3D)
+    checked = 0
+    for frame in (0, 5):
+        depth = load_depth(out / "odometry" / "depth" / f"{frame:06d}.npy")
+        h, w = depth.shape
+        # the model's cylinder: fx = W / 2 pi, cx = W / 2; rows span h in [-1, 1] edge to edge
+        fx, cx, fy, cy = w / (2 * math.pi), w / 2, h / 2, (h - 1) / 2
+        for v in range(h):
+            for u in range(w):
+                theta, hh, d = (u - cx) / fx, (v - cy) / fy, float(depth[v, u])
+                p = d * np.array([math.sin(theta), hh, math.cos(theta)])
+                world = c2w[frame][:3, :3] @ p + c2w[frame][:3, 3]
+                nearest = int(np.argmin(np.linalg.norm(xyz - world, axis=1)))
+                if np.linalg.norm(xyz[nearest] - world) > 1e-5:
+                    continue  # not a sampled pixel
+                point = rec.points3D[ids[nearest]]
+                for el in point.track.elements:
+                    image = rec.images[el.image_id]
+                    k = int(image.name[7:9])
+                    q = _pano_from_view(k).T @ p
+                    expected = [VIEW / 2 * q[0] / q[2] + VIEW / 2, VIEW / 2 * q[1] / q[2] + VIEW / 2]
+                    assert image.points2D[el.point2D_idx].xy == pytest.approx(expected, abs=1e-6)
+                    checked += 1
+    assert checked > 50
+
+
+def test_transforms_json_inverts_to_the_same_cameras(exported):
+    _, out = exported
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    tf = json.loads((out / "transforms.json").read_text())
+    assert (tf["w"], tf["h"], tf["cx"], tf["cy"]) == (VIEW, VIEW, VIEW / 2, VIEW / 2)
+    assert tf["fl_x"] == pytest.approx(VIEW / 2) and tf["ply_file_path"] == "sparse_pc.ply"
+    by_name = {im.name: im for im in rec.images.values()}
+    assert len(tf["frames"]) == 32
+    for f in tf["frames"]:
+        opengl_c2w = np.array(f["transform_matrix"])
+        w2c = np.linalg.inv(opengl_c2w @ np.diag([1.0, -1.0, -1.0, 1.0]))  # OpenGL axes back to OpenCV's
+        image = by_name[f["file_path"].removeprefix("images/")]
+        np.testing.assert_allclose(w2c[:3], image.cam_from_world().matrix(), atol=1e-9)
+        assert (out / f["file_path"]).is_file()
+    from plyfile import PlyData
+
+    assert len(PlyData.read(str(out / "sparse_pc.ply"))["vertex"]) == rec.num_points3D()
+
+
+def test_view_rotations_look_around_to_the_right():
+    rot = view_rotations(4)
+    np.testing.assert_allclose(rot[1] @ [0, 0, 1], [1, 0, 0], atol=1e-12)  # a quarter turn right: +x
+    for k in range(4):
+        np.testing.assert_allclose(rot[k], _pano_from_view(k), atol=1e-12)
+    with pytest.raises(Exception, match="field of view"):
+        ViewOptions(fov=180)

@@ -32,14 +32,9 @@ def _depth_source(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N (default auto)")
 
 
-def _colmap_args(sub) -> None:
-    c = sub.add_parser(
-        "colmap",
-        help="a ride as a COLMAP model and a nerfstudio transforms.json (virtual pinhole views, posed by the "
-        "ride's odometry, with points from the depth): for Gaussian splatting and NeRF trainers",
-    )
+def _ride_args(c: argparse.ArgumentParser) -> None:
+    """The options of an export of a whole ride: its input and the odometry that poses it."""
     c.add_argument("input", metavar="INPUT", help="a video file, a folder of frames, or a dataset sequence")
-    c.add_argument("out", metavar="OUT", help="the folder to write: images/, sparse/0/, transforms.json")
     c.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
     c.add_argument("--refine", action="store_true", help="refine the odometry (as cylsfm odometry --refine)")
     c.add_argument("--camera", help="camera.json of the frames (as for cylsfm odometry)")
@@ -49,6 +44,18 @@ def _colmap_args(sub) -> None:
     c.add_argument(
         "--mask", metavar="IMAGE", help="the camera's own mount or helmet (black): no points from it"
     )
+    c.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _colmap_args(sub) -> None:
+    c = sub.add_parser(
+        "colmap",
+        help="a ride as a COLMAP model and a nerfstudio transforms.json (virtual pinhole views, posed by the "
+        "ride's odometry, with points from the depth): for Gaussian splatting and NeRF trainers",
+    )
+    _ride_args(c)
+    c.add_argument("out", metavar="OUT", help="the folder to write: images/, sparse/0/, transforms.json")
     c.add_argument(
         "--views", type=int, default=4, help="pinhole views per panorama, turned evenly (default 4)"
     )
@@ -57,12 +64,20 @@ def _colmap_args(sub) -> None:
     c.add_argument("--points-per-frame", type=int, default=2000, help="3D points from each depth map")
     c.add_argument("--image-format", choices=["jpg", "png"], default="jpg", help="the views' files")
     c.add_argument("--text", action="store_true", help="also write the COLMAP model as text")
-    c.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
-    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r = sub.add_parser(
+        "rerun",
+        help="a ride as a rerun recording (.rrd): the trajectory, the panoramas and depth on a time line, "
+        "the back-projected coloured points",
+    )
+    _ride_args(r)
+    r.add_argument(
+        "out", metavar="OUT.rrd", help="the recording to write (the odometry goes to OUT.rrd.odometry/)"
+    )
+    r.add_argument("--points-per-frame", type=int, default=4000, help="3D points from each depth map")
 
 
 def _export_args(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="action", required=True, metavar="{onnx,mesh,stereo,viewer,colmap}")
+    sub = p.add_subparsers(dest="action", required=True, metavar="{onnx,mesh,stereo,viewer,colmap,rerun}")
     onnx = sub.add_parser(
         "onnx",
         help="the depth network as ONNX (image [B,3,H,W] in [0,1] -> depth [B,1,H,W]), wrap padding in "
@@ -118,14 +133,14 @@ def _viewer_args(sub) -> None:
 
 @command(
     "export",
-    "export a model (ONNX), a panorama's depth (mesh, VR stereo, web viewer) or a ride (COLMAP, nerfstudio)",
+    "export a model (ONNX), a panorama's depth (mesh, VR stereo, web viewer) or a ride (COLMAP, rerun)",
     _export_args,
 )
 def run_export(args: argparse.Namespace) -> int:
     if args.action == "onnx":
         return _onnx(args)
-    if args.action == "colmap":
-        return _colmap(args)
+    if args.action in ("colmap", "rerun"):
+        return _ride(args)
     from ..export.scene import load_scene
 
     if args.action == "stereo" and _is_video(args.pano):
@@ -205,9 +220,9 @@ def _stereo_video(args: argparse.Namespace) -> int:
     return 0
 
 
-def _colmap(args: argparse.Namespace) -> int:
+def _ride(args: argparse.Namespace) -> int:
     from ..export.colmap import ViewOptions
-    from ..odometry import OdometrySettings, export_colmap
+    from ..odometry import OdometrySettings, export_colmap, export_rerun
 
     settings = OdometrySettings(
         camera=args.camera,
@@ -219,6 +234,10 @@ def _colmap(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         mask=args.mask,
     )
+    if args.action == "rerun":
+        s = export_rerun(args.input, args.checkpoint, args.out, settings, args.points_per_frame)
+        print(f"wrote {s['path']}: {s['frames']} frames ({s['unit']}); open it with: rerun {s['path']}")
+        return 0
     views = ViewOptions(
         yaws=args.views,
         fov=args.fov,

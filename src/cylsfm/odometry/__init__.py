@@ -36,7 +36,7 @@ import types
 
 from ..geometry.align import AlignConfig, AlignResult, align
 from ..geometry.ground import ground_height, metric_scale
-from .colmap import export_colmap
+from .exports import export_colmap, export_rerun
 from .frames import Ride, open_ride
 from .run import OdometryResult, odometry
 from .settings import OdometrySettings
@@ -49,6 +49,7 @@ __all__ = [
     "Ride",
     "align",
     "export_colmap",
+    "export_rerun",
     "ground_height",
     "metric_scale",
     "odometry",

@@ -310,7 +310,8 @@ def test_cli_depth_with_checkpoint_writes_json(synth, tmp_path, capsys):
     assert "per_row" in text and "model/constant" in text and "model/per_row" in text
     data = json.loads(out.read_text())
     keys = {*DEPTH_METRICS, "n_images", "scale_mean", "scale_std", "seam", "centre"}
-    assert keys <= set(data) and set(data) == keys | {"baselines", "meta"}
+    assert keys <= set(data) and set(data) == keys | {"baselines", "meta", "scale_consistency"}
+    assert data["scale_consistency"]["rides"] and data["scale_consistency"]["reference"] > 0
     assert "@seam" in text and set(data["seam"]) == {*DEPTH_METRICS, "n_images"}
     assert "@centre" in text and set(data["centre"]) == set(data["seam"])
     assert data["meta"]["seam_fraction"] == pytest.approx(0.125)
@@ -406,3 +407,42 @@ def test_cli_yaw_roll_needs_a_checkpoint(synth, capsys):
     assert main(args) == 2
     err = capsys.readouterr().err
     assert re.search("yaw[-_]roll", err) and "Traceback" not in err
+
+
+def test_scale_consistency_over_each_ride(synth, tmp_path, capsys):
+    """Predictions of one scale per ride: a coefficient of variation of 0; each frame scaled on its own by
+    known factors: exactly their spread; the reference (a per-frame scale) is the spread of the frames'
+    median true depths."""
+    from cylsfm.evaluate.depth import evaluate_depth
+
+    root, _ = synth
+    factors = np.array([1.0, 2.0, 0.5, 1.5, 3.0, 1.0, 2.5, 0.8])
+    runs = {}
+    for name, per_frame in (("steady", False), ("wobbly", True)):
+        pred = tmp_path / name
+        for seq in scan_dataset(root):
+            (pred / seq.name).mkdir(parents=True)
+            for i, path in enumerate(seq.depths):
+                f = factors[i] if per_frame else 3.0
+                np.save(pred / seq.name / path.name, np.load(path) * f)
+        runs[name] = evaluate_depth(pred, root, split=None, prior_split=None)["scale_consistency"]
+    assert runs["steady"]["model"] == pytest.approx(0, abs=1e-6)  # (float32 files)
+    scales = 1 / factors
+    for ride in runs["wobbly"]["rides"].values():
+        assert ride["model"] == pytest.approx(scales.std() / scales.mean(), rel=1e-6)
+        assert ride["frames"] == 8 and ride["reference"] > 0
+    valid = [(d := np.load(p))[(d > 1e-3) & (d < 80)] for p in scan_dataset(root)[0].depths]  # scored pixels
+    medians = [float(np.median(v)) for v in valid]
+    first = runs["steady"]["rides"][scan_dataset(root)[0].name]
+    assert first["reference"] == pytest.approx(np.std(medians) / np.mean(medians), rel=1e-6)
+    args = [
+        "evaluate",
+        "depth",
+        "--predictions",
+        str(tmp_path / "wobbly"),
+        "--data",
+        str(root),
+        "--no-progress",
+    ]
+    assert main(args) == 0
+    assert "scale over each ride" in capsys.readouterr().out

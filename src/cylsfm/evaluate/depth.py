@@ -160,6 +160,9 @@ class _Scores:
     model: DepthAccumulator
     constant: DepthAccumulator
     per_row: DepthAccumulator
+    #: per sequence: each frame's median-scaling factor of the model and of the constant depth (the
+    #: reference that gives every frame its own scale: its factor is the frame's median true depth)
+    scales: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
 
     @classmethod
     def create(
@@ -172,15 +175,24 @@ class _Scores:
         )
 
     def add(
-        self, gt: np.ndarray, pred: np.ndarray, mask: Any, seam: bool, prior: np.ndarray | None, where: str
+        self,
+        gt: np.ndarray,
+        pred: np.ndarray,
+        mask: Any,
+        seam: bool,
+        prior: np.ndarray | None,
+        where: str,
+        ride: str = "",
     ) -> None:
-        """Score one image (``prior``: the per-row map at its size, or ``None``); a prediction that cannot be
-        scored is a :class:`DatasetError` naming ``where``."""
+        """Score one image of sequence ``ride`` (``prior``: the per-row map at its size, or ``None``); a
+        prediction that cannot be scored is a :class:`DatasetError` naming ``where``."""
         try:
-            self.model.add(gt, pred, mask, seam)
+            own = self.model.add(gt, pred, mask, seam)
         except ValueError as exc:
             raise DatasetError(f"{where}: {exc}") from None
-        self.constant.add(gt, np.ones_like(gt), mask, seam)
+        reference = self.constant.add(gt, np.ones_like(gt), mask, seam)
+        if own is not None and reference is not None:
+            self.scales.setdefault(ride, []).append((own, reference))
         if prior is not None:
             self.per_row.add(gt, prior, mask, seam)
 
@@ -193,6 +205,7 @@ class _Scores:
             "constant": self.constant.result(),
             "per_row": per_row,
             "n_images": model["n_images"],
+            "scale_consistency": scale_consistency(self.scales) if self.model.median_scaling else None,
         }
 
 
@@ -216,7 +229,7 @@ def _score(
         for (_, i, _), g, p, m in zip(batch, gts, preds, rolled, strict=True):
             if g.shape not in prior_maps:
                 prior_maps[g.shape] = prior.depth_map(*g.shape)
-            scores.add(g, p, m, seam, prior_maps[g.shape], depths.where(seq, i))
+            scores.add(g, p, m, seam, prior_maps[g.shape], depths.where(seq, i), seq.name)
         bar.update(len(batch))
     bar.close()
 
@@ -303,6 +316,29 @@ def evaluate_depth(
     }
 
 
+def scale_consistency(scales: dict[str, list[tuple[float, float]]]) -> dict[str, Any] | None:
+    """How steady the depth's scale is over each ride: the coefficient of variation (standard deviation
+    over mean) of the per-frame median-scaling factors, for the model and for the reference that gives every
+    frame its own scale (a depth of median 1 in each frame: its factor is the frame's median true depth, as
+    with panoramic depth models that normalise each panorama), per ride and averaged over the rides with at
+    least two frames. Below the reference: the model keeps one scale over a ride better than per-frame
+    normalisation would. ``None`` without such a ride."""
+    rides = {}
+    for name, pairs in scales.items():
+        if len(pairs) < 2:
+            continue
+        arr = np.asarray(pairs, dtype=np.float64)
+        cv = arr.std(axis=0) / np.abs(arr.mean(axis=0))
+        rides[name] = {"model": float(cv[0]), "reference": float(cv[1]), "frames": len(pairs)}
+    if not rides:
+        return None
+    return {
+        "model": float(np.mean([r["model"] for r in rides.values()])),
+        "reference": float(np.mean([r["reference"] for r in rides.values()])),
+        "rides": rides,
+    }
+
+
 # --------------------------------------------------------------------------------------- reporting
 def _metrics_only(m: dict[str, Any] | None) -> dict[str, Any] | None:
     if m is None:
@@ -336,6 +372,7 @@ def depth_json(result: dict[str, Any]) -> dict[str, Any]:
     {"abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3", "n_images", "scale_mean", "scale_std",
      "seam": {"abs_rel", ..., "a3", "n_images"} or null, "centre": {same keys} or null,
      "baselines": {"constant": {same keys}, "per_row": {same keys} or null},
+     "scale_consistency": {"model", "reference", "rides": {SEQ: {"model", "reference", "frames"}}} or null,
      "meta": {"source", "data", "split", "split_name", "prior_split", "prior_images", "n_without_gt",
               "min_depth", "max_depth", "median_scaling", "seam_fraction", "yaw_roll"}}
 
@@ -347,6 +384,7 @@ def depth_json(result: dict[str, Any]) -> dict[str, Any]:
         "constant": _metrics_only(result["constant"]),
         "per_row": _metrics_only(result["per_row"]),
     }
+    out["scale_consistency"] = result.get("scale_consistency")
     out["meta"] = {k: result[k] for k in _META if k in result}
     return out
 
@@ -383,4 +421,10 @@ def format_depth_table(result: dict[str, Any]) -> str:
             for name, m in seams:
                 if m.get(part):
                     lines.append(text_row(f"{name} @{part}", [m[part][k] for k in DEPTH_METRICS], 9, 18))
+    sc = result.get("scale_consistency")
+    if sc:
+        lines.append(
+            f"scale over each ride (coefficient of variation of the per-frame scale factors, {len(sc['rides'])} "
+            f"rides): model {sc['model']:.4f}, a per-frame scale {sc['reference']:.4f} (lower: one scale per ride)"
+        )
     return "\n".join(lines)

@@ -42,7 +42,6 @@ VARIANTS = {
     "rolled-kf5": {"refine": True, "keyframe_every": 5, "rolled": True},
     "refine-ahead": {"refine": True, "mount_yaw": 0.0},
     "rolled-ahead": {"refine": True, "mount_yaw": 0.0, "rolled": True},
-    "one-scale": {"refine": True, "one_scale": True},
     "helmet": {"refine": True, "occluder": "helmet"},
     "helmet-nomask": {"refine": True, "occluder": "helmet", "mask": False},
     "roof": {"refine": True, "occluder": "roof"},

@@ -33,7 +33,7 @@ from .frames import Ride, depth_files, open_ride
 from .report import ride_metrics, top_view
 from .settings import OdometrySettings
 from .state import STATE_FILE, State
-from .track import MOUNT_AGREEMENT, Tracker, TrackOptions, chained_scales, keyframe_steps, network_size
+from .track import MOUNT_AGREEMENT, Tracker, TrackOptions, keyframe_steps, network_size
 
 __all__ = ["OdometryResult", "OdometrySettings", "odometry"]
 
@@ -101,7 +101,6 @@ def odometry(
         "mount_yaw": opt.mount_yaw,
         "pose_iterations": predictor.pose_iterations,
         "ground_fit": opt.camera_height is not None,  # the depth of every frame is needed for it
-        "one_scale": opt.one_scale,
         "mask": _file_id(mask_file),
     }
     run_settings = _settings(ride, checkpoint, plan, opt, fixed)
@@ -304,15 +303,7 @@ def _finish(
 ) -> OdometryResult:
     """Scale, chain, and write the trajectory, the plot, the measures and the summary."""
     refine = opt.refine
-    refined = None
-    if refine:
-        raw = np.stack(state.refined)
-        if opt.one_scale and len(state.ratios) == len(raw):  # every step in the first frame's depth unit
-            c = chained_scales(np.asarray(state.ratios), tracker.every)
-            keys = np.arange(len(raw)) - np.arange(len(raw)) % tracker.every
-            raw = raw.copy()
-            raw[:, :3, 3] *= c[keys][:, None]
-        refined = keyframe_steps(raw, tracker.every)
+    refined = keyframe_steps(np.stack(state.refined), tracker.every) if refine else None
     steps, unit, scale, comments = _in_unit(
         refined if refined is not None else np.stack(state.net), state, opt, depths
     )

@@ -42,8 +42,6 @@ class OdometrySettings:
             camera, a helmet or a mount (black), in the frames' own geometry; the compass, the refinement
             and the search for the direction of travel leave the occluder out. ``None``: a dataset
             sequence's own ``mask.png`` when it has one; ``False``: every pixel.
-        one_scale: with ``refine``, bring every refined step to the first frame's depth unit by chaining the
-            ratios of consecutive depth maps where the refined pose carries one onto the next.
 
     Raises:
         InputError: for a value out of range or ``depth_from`` without ``refine``.
@@ -64,7 +62,6 @@ class OdometrySettings:
     progress: bool = True
     pose_iterations: int | None = None
     mask: str | os.PathLike[str] | bool | None = None
-    one_scale: bool = False
 
     def __post_init__(self) -> None:
         if self.keyframe_every < 1:

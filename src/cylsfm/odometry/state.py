@@ -43,9 +43,6 @@ class State:
     refined: list[np.ndarray] = field(default_factory=list)
     compass: list[np.ndarray] = field(default_factory=list)
     cost: list[np.ndarray] = field(default_factory=list)
-    #: per refined step j: the scale of frame j+1's depth in the unit of its keyframe's (the median ratio
-    #: of the keyframe's points moved by the refined pose to frame j+1's depth where they land)
-    ratios: list[float] = field(default_factory=list)
     #: the frames still needed, by index: network-size images ``[3,H,W]`` and view depths ``[1,h,w]``
     tail_index: list[int] = field(default_factory=list)
     tail_images: list[np.ndarray] = field(default_factory=list)
@@ -72,7 +69,6 @@ class State:
             "refined": _stack(self.refined, (4, 4)),
             "compass": _stack(self.compass, (4, 4)),
             "cost": _stack(self.cost, (4,)),
-            "ratios": np.array(self.ratios, dtype=np.float64),
             "tail_index": np.array(self.tail_index, dtype=np.int64),
             "tail_images": _stack(self.tail_images, (0, 0, 0)).astype(np.float32),
             "tail_depths": _stack(self.tail_depths, (0, 0, 0)).astype(np.float32),
@@ -97,7 +93,6 @@ class State:
                 state.stems = [str(s) for s in z["stems"]]
                 state.times = [float(t) for t in z["times"]]
                 state.heights = [float(h) for h in z["heights"]]
-                state.ratios = [float(r) for r in z["ratios"]]
                 for name in ("windows", "net", "refined", "compass", "cost", "tail_images", "tail_depths"):
                     setattr(state, name, list(z[name]))
                 state.tail_index = [int(i) for i in z["tail_index"]]

@@ -20,14 +20,14 @@ from torch import Tensor
 
 from ..errors import ShapeError
 from ..evaluate.pose_metrics import step_from_window, window_centre
-from ..geometry import Camera, compass_yaw, invert, sample_image, transform_points, yaw_matrix
+from ..geometry import Camera, compass_yaw, invert, yaw_matrix
 from ..geometry.align import AlignConfig, align
 from ..geometry.ground import ground_height
 from ..model import Predictor
 from .mount import mount_yaw
 from .state import State
 
-__all__ = ["Timings", "TrackOptions", "Tracker", "chained_scales", "depth_ratios"]
+__all__ = ["Timings", "TrackOptions", "Tracker"]
 
 #: The direction of travel found is used when at least this weighted fraction of the pairs agree with it.
 MOUNT_AGREEMENT = 0.5
@@ -272,8 +272,6 @@ class Tracker:
         depth = torch.stack([self.depths[key] for key in keys])
         res = align(tgt, src, depth, cands, self.view, config=self.align_config, mask=mask)
         st.refined += list(res.poses.cpu().numpy())
-        following = torch.stack([self.depths[j + 1] for j in chunk])
-        st.ratios += depth_ratios(depth, following, res.poses, self.view, mask).tolist()
         st.cost += list(
             torch.stack((res.start_cost, res.cost, res.start.double(), res.valid.double()), 1).numpy()
         )
@@ -307,32 +305,6 @@ class Tracker:
         st.tail_depths = [self.depths[i].numpy() for i in st.tail_index]
 
 
-def depth_ratios(
-    depth: Tensor, following: Tensor, poses: Tensor, camera: Camera, mask: Tensor | None = None
-) -> Tensor:
-    """The scale of each ``following`` depth map in the unit of ``depth``: the median, over the pixels of
-    ``depth`` ``[B,1,h,w]`` whose points, moved by ``poses`` ``T_{t->s}`` ``[B,4,4]`` (in ``depth``'s unit),
-    land on a known pixel of ``following`` ``[B,1,h,w]``, of the moved point's depth over the depth found
-    there (bilinear). ``[B]`` float64; 1 where no pixel lands (nothing to compare). ``mask`` ``[1,1,h,w]``:
-    pixels of neither map are used under an occluder."""
-    d = depth.double()
-    known = d > 0
-    points = camera.unproject(torch.where(known, d, torch.ones_like(d)))
-    moved = transform_points(poses.double(), points)
-    uv = camera.project(moved)
-    there_known = following.double() > 0
-    sampled, inside = sample_image(torch.cat((following.double(), there_known.double()), 1), uv, camera.wraps)
-    ok = known & inside & camera.projectable(moved) & (sampled[:, 1:] > 0.999)
-    if mask is not None:
-        m = mask.double().expand_as(d) > 0.999
-        sm, _ = sample_image(mask.double().expand_as(d), uv, camera.wraps)
-        ok &= m & (sm > 0.999)
-    ratio = camera.depth_of(moved) / sampled[:, :1].clamp(min=1e-12)
-    ratio = torch.where(ok, ratio, torch.full_like(ratio, float("nan"))).flatten(1)
-    out = torch.nanmedian(ratio, dim=1).values
-    return torch.where(torch.isfinite(out) & (out > 0), out, torch.ones_like(out))
-
-
 def network_size(images: Tensor, size: tuple[int, int]) -> Tensor:
     """``[B,3,H,W]`` -> the network's size ``(W, H)`` by area averaging (as the predictor resizes)."""
     w, h = size
@@ -349,13 +321,3 @@ def keyframe_steps(rel: np.ndarray, every: int) -> np.ndarray:
         if j % every:
             out[j] = rel[j] @ invert(rel[j - 1])
     return out
-
-
-def chained_scales(ratios: np.ndarray, every: int) -> np.ndarray:
-    """``[M]`` factors that bring every frame's depth to the unit of the first frame's, from the ratios of
-    the refined steps (``ratios[j]``: frame ``j+1``'s depth in the unit of its keyframe ``K = j - j % every``):
-    ``c_0 = 1``, ``c_{j+1} = c_K r_j``."""
-    c = np.ones(len(ratios) + 1)
-    for j, r in enumerate(ratios):
-        c[j + 1] = c[j - j % every] * r
-    return c

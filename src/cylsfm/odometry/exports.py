@@ -20,7 +20,7 @@ from ..geometry import Camera
 from ..model import Predictor
 from ..model.plan import network_images, network_mask
 from .frames import open_ride
-from .run import _mask_file, _plan, odometry
+from .run import odometry, ride_mask, ride_plan
 from .settings import OdometrySettings
 from .track import network_size
 
@@ -53,9 +53,9 @@ def _ride(
         raise CylsfmError(
             f"{checkpoint}: the model sees {predictor.fov:g}-degree crops; exporting a ride needs 360"
         )
-    plan = _plan(ride, predictor, opt.camera)
+    plan = ride_plan(ride, predictor, opt.camera)
     net_cam = plan.network_input.resized(*predictor.size)
-    mask_file = _mask_file(ride, opt.mask)
+    mask_file = ride_mask(ride, opt.mask)
     mask = (
         None if mask_file is None else network_mask(mask_file, ride.size, plan, predictor.size)[0, 0].numpy()
     )

@@ -89,7 +89,7 @@ def odometry(
     ride = open_ride(input, opt.fps, opt.stride)
     predictor, plan = _model_and_plan(ride, checkpoint, opt.device, opt.pose_iterations, opt.camera)
     net_cam = plan.network_input.resized(*predictor.size)
-    mask_file = _mask_file(ride, opt.mask)
+    mask_file = ride_mask(ride, opt.mask)
     mask = network_mask(mask_file, ride.size, plan, predictor.size) if mask_file is not None else None
     depths = _true_depth_files(opt.depth_from, ride, plan)
     turnable = _turnable(predictor, opt.mount_yaw)
@@ -134,7 +134,7 @@ def odometry(
     return _finish(ride, state, dest, tracker, opt, depths, started, masked)
 
 
-def _mask_file(ride: Ride, mask: Any) -> Path | None:
+def ride_mask(ride: Ride, mask: Any) -> Path | None:
     """The mask image to use: the one given, else a dataset sequence's own (``False``: none)."""
     if mask is False:
         return None
@@ -183,7 +183,7 @@ def _model_and_plan(
         if isinstance(checkpoint, Predictor)
         else Predictor.from_checkpoint(checkpoint, device, pose_iterations)
     )
-    return predictor, _plan(ride, predictor, camera)
+    return predictor, ride_plan(ride, predictor, camera)
 
 
 def _settings(
@@ -204,7 +204,7 @@ def _settings(
     }
 
 
-def _plan(ride: Ride, predictor: Predictor, camera: Any) -> Any:
+def ride_plan(ride: Ride, predictor: Predictor, camera: Any) -> Any:
     """How the ride's frames reach the network (its camera: the one given, or a dataset sequence's own)."""
     cam = load_camera(camera) if isinstance(camera, str | os.PathLike) else camera
     cam_name = (

@@ -65,3 +65,23 @@ def failing_writes(monkeypatch, pattern: str, error: int) -> None:
 
     monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
     monkeypatch.setattr(os, "fdopen", fdopen)
+
+
+def tiny_training_config(root, **extra):
+    """The default recipe on the tiny data of ``tests/train`` (128x32, batch 2, every step logged and
+    checkpointed in ``latest.pt``); ``extra``: more ``key=value`` overrides."""
+    from cylsfm.model.config import apply_overrides
+
+    items = [
+        f"data.root='{root}'",
+        "data.width=128",
+        "data.height=32",
+        "data.split=null",
+        "data.workers=0",
+        "batch_size=2",
+        "log_every=1",
+        "image_every=2",
+        "latest_every=1",
+        "checkpoint_every=0",
+    ] + [f"{k}={v}" for k, v in extra.items()]
+    return apply_overrides(preset("default"), items)

@@ -5,26 +5,13 @@ on the CPU (autocast and the gradient scaler both exist there), so it is tested 
 import pytest
 import torch
 
-from cylsfm.model.config import apply_overrides, preset
 from cylsfm.train import trainer as trainer_module
 from cylsfm.train.trainer import NonFiniteLossError, Trainer
+from helpers import tiny_training_config
 
 
 def _cfg(root, **extra):
-    items = [
-        f"data.root='{root}'",
-        "data.width=128",
-        "data.height=32",
-        "data.split=null",
-        "data.workers=0",
-        "batch_size=2",
-        "log_every=1",
-        "image_every=0",
-        "latest_every=1",
-        "checkpoint_every=0",
-        "device=cpu",
-    ] + [f"{k}={v}" for k, v in extra.items()]
-    return apply_overrides(preset("default"), items)
+    return tiny_training_config(root, image_every=0, device="cpu", **extra)
 
 
 def _poison_gradients(trainer, steps):

@@ -12,22 +12,11 @@ from cylsfm.geometry import CylindricalCamera
 from cylsfm.model import CheckpointError, Predictor, load_checkpoint, load_models, save_checkpoint
 from cylsfm.model.config import apply_overrides, load_config, preset
 from cylsfm.train.trainer import NonFiniteLossError, Trainer, train
+from helpers import tiny_training_config
 
 
 def _cfg(root, **extra):
-    items = [
-        f"data.root='{root}'",
-        "data.width=128",
-        "data.height=32",
-        "data.split=null",
-        "data.workers=0",
-        "batch_size=2",
-        "log_every=1",
-        "image_every=2",
-        "latest_every=1",
-        "checkpoint_every=0",
-    ] + [f"{k}={v}" for k, v in extra.items()]
-    return apply_overrides(preset("default"), items)
+    return tiny_training_config(root, **extra)
 
 
 def _weights(run):

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import errno
 import os
-import tempfile
 
 import pytest
 import torch
@@ -13,27 +12,13 @@ import torch
 from cylsfm.atomic import atomic_write_text
 from cylsfm.cli import main
 from cylsfm.errors import CylsfmError
+from helpers import failing_writes
 
 
 def test_a_full_disk_keeps_the_previous_file_and_names_it(tmp_path, monkeypatch):
     path = tmp_path / "report.md"
     atomic_write_text(path, "the old report\n")
-    real = os.fdopen
-
-    class Full:
-        def __init__(self, fh):
-            self.fh = fh
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return self.fh.__exit__(*exc)
-
-        def write(self, data):
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    monkeypatch.setattr(os, "fdopen", lambda fd, mode: Full(real(fd, mode)))
+    failing_writes(monkeypatch, "report.md", errno.ENOSPC)
     with pytest.raises(CylsfmError, match=r"report\.md: cannot write \(No space left on device\)") as info:
         atomic_write_text(path, "the new report\n")
     assert "\n" not in str(info.value)
@@ -42,10 +27,7 @@ def test_a_full_disk_keeps_the_previous_file_and_names_it(tmp_path, monkeypatch)
 
 
 def test_a_read_only_directory_is_one_line(tmp_path, monkeypatch):
-    def read_only(*args, **kwargs):
-        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
-
-    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    failing_writes(monkeypatch, "out.json", errno.EROFS)
     with pytest.raises(CylsfmError, match=r"out\.json: cannot write \(Read-only file system\)"):
         atomic_write_text(tmp_path / "out.json", "{}")
 

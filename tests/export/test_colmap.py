@@ -76,6 +76,7 @@ def test_the_model_reads_back_with_every_pose_as_the_trajectory_says(exported):
 def test_every_point_projects_onto_its_keypoints(exported):
     _, out = exported
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert rec.compute_mean_track_length() > 1.5  # seen from the neighbouring panoramas too
     worst = 0.0
     for point in rec.points3D.values():
         assert point.track.length() >= 1
@@ -95,7 +96,7 @@ def test_a_cylinder_pixel_lands_where_the_closed_form_says(exported):
     c2w = read_tum(out / "odometry" / "trajectory.txt")[1]
     xyz = np.array([p.xyz for p in rec.points3D.values()])
     ids = list(rec.points3D)
-    checked = 0
+    checked = across = 0
     for frame in (0, 5):
         depth = load_depth(out / "odometry" / "depth" / f"{frame:06d}.npy")
         h, w = depth.shape
@@ -112,12 +113,14 @@ def test_a_cylinder_pixel_lands_where_the_closed_form_says(exported):
                 point = rec.points3D[ids[nearest]]
                 for el in point.track.elements:
                     image = rec.images[el.image_id]
-                    k = int(image.name[7:9])
-                    q = _pano_from_view(k).T @ p
+                    other, k = int(image.name[:6]), int(image.name[7:9])  # a view of this or another panorama
+                    local = np.linalg.inv(c2w[other]) @ np.append(world, 1.0)
+                    q = _pano_from_view(k).T @ local[:3]
                     expected = [VIEW / 2 * q[0] / q[2] + VIEW / 2, VIEW / 2 * q[1] / q[2] + VIEW / 2]
                     assert image.points2D[el.point2D_idx].xy == pytest.approx(expected, abs=1e-6)
                     checked += 1
-    assert checked > 50
+                    across += other != frame
+    assert checked > 50 and across > 10  # tracks reach the neighbouring panoramas' views
 
 
 def test_transforms_json_inverts_to_the_same_cameras(exported):
@@ -146,3 +149,22 @@ def test_view_rotations_look_around_to_the_right():
         np.testing.assert_allclose(rot[k], _pano_from_view(k), atol=1e-12)
     with pytest.raises(Exception, match="field of view"):
         ViewOptions(fov=180)
+
+
+def test_a_point_hidden_in_a_neighbour_is_not_in_its_views(tmp_path):
+    """Three panoramas at the same place: the middle one's depth says a wall stands at 1 m where the others
+    see 5 m, so the others' points are in the views of each other but not in the middle one's."""
+    from cylsfm.export.colmap import ColmapWriter
+    from cylsfm.geometry import CylindricalCamera
+
+    cam = CylindricalCamera.full(64, 16)
+    rgb = np.full((16, 64, 3), 128, np.uint8)
+    writer = ColmapWriter(tmp_path, ViewOptions(yaws=4, width=32, points_per_frame=64, image_format="png"))
+    for name, d in (("a", 5.0), ("b", 1.0), ("c", 5.0)):
+        writer.add(name, rgb, cam, np.eye(4), np.full((16, 64), d, np.float32), cam)
+    writer.finish()
+    rec = pycolmap.Reconstruction(str(tmp_path / "sparse" / "0"))
+    for point in rec.points3D.values():
+        frames = {rec.images[el.image_id].name[0] for el in point.track.elements}
+        far = np.linalg.norm(point.xyz[[0, 2]]) > 2
+        assert frames == ({"a", "c"} if far else {"b"})

@@ -8,7 +8,8 @@ straight ahead; every panorama is a frame of that rig, posed by ``rig_from_world
 trajectory's camera-to-world pose: the camera axes are the same, x right, y down, z forward), and each of its
 views an image. Points: a regular sample of each panorama's depth (``points_per_frame``), back-projected by
 the panorama's own camera model into the world, coloured by the panorama, each with the track of the views
-of its panorama that see it and the keypoint where it projects.
+that see it (of its panorama and of its neighbours along the ride, where their depth agrees) and the
+keypoint where it projects.
 
 Conventions (tested against pycolmap's own reader and camera model): COLMAP stores world-to-camera poses
 (quaternions w-first in its text files) and puts pixel centres at +0.5, so a keypoint is the project's pixel
@@ -24,7 +25,7 @@ import io
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +50,8 @@ class ViewOptions:
         points_per_frame: 3D points sampled from each panorama's depth (at most).
         image_format: ``"jpg"`` (quality 95) or ``"png"``.
         text: also write the COLMAP model as text (``sparse/0/*.txt`` beside the binary files).
+        track_span: a point is looked for in the views of this many panoramas before and after its own.
+        track_tolerance: ... seen there when that panorama's depth agrees with its distance to this fraction.
     """
 
     yaws: int = 4
@@ -58,6 +61,8 @@ class ViewOptions:
     points_per_frame: int = 2000
     image_format: str = "jpg"
     text: bool = False
+    track_span: int = 2
+    track_tolerance: float = 0.05
 
     def __post_init__(self) -> None:
         if self.yaws < 1:
@@ -99,14 +104,25 @@ def render_view(
 
 
 @dataclass
-class _Points:
-    xyz: list[np.ndarray] = field(default_factory=list)
-    rgb: list[np.ndarray] = field(default_factory=list)
+class _Panorama:
+    """What :class:`ColmapWriter` keeps of each panorama until :meth:`ColmapWriter.finish`."""
+
+    names: list[str]  # its views' files
+    world_from_pano: np.ndarray  # [4,4]
+    depth: np.ndarray  # [h,w] of ``depth_camera`` (0: unknown)
+    depth_camera: Camera
+    points: np.ndarray  # [N,3] sampled from the depth, in the panorama's frame
+    colours: np.ndarray  # uint8 [N,3]
 
 
 class ColmapWriter:
     """Writes ``OUT/images/``, ``OUT/sparse/0/`` (COLMAP, binary), ``OUT/transforms.json`` and
     ``OUT/sparse_pc.ply`` from panoramas added one at a time (see the module docstring).
+
+    A point's track holds every view, of its own panorama and of the ``options.track_span`` panoramas before
+    and after it, that sees it: it lies in the view and in front of it, and the depth of that panorama where
+    it lands agrees with its distance within ``options.track_tolerance`` (so a point hidden there is not
+    counted).
 
     Args:
         out: the output folder (created).
@@ -125,24 +141,7 @@ class ColmapWriter:
         self.options = options or ViewOptions()
         self.view = self.options.camera
         self.rotations = view_rotations(self.options.yaws)
-        self.rec = pycolmap.Reconstruction()
-        self.points = _Points()
-        self.frames: list[dict] = []
-        self._rig()
-
-    def _rig(self) -> None:
-        pc, v = self.pc, self.view
-        params = [float(v.fx), float(v.fy), v.width / 2, v.height / 2]  # centred: COLMAP's centres at +0.5
-        rig = pc.Rig(rig_id=1)
-        for k, rot in enumerate(self.rotations):
-            cam = pc.Camera(camera_id=k + 1, model="PINHOLE", width=v.width, height=v.height, params=params)
-            self.rec.add_camera(cam)
-            sensor = pc.sensor_t(type=pc.SensorType.CAMERA, id=k + 1)
-            if k == 0:
-                rig.add_ref_sensor(sensor)
-            else:  # view_from_pano: the rig's frame is the panorama's (the first view's)
-                rig.add_sensor(sensor, pc.Rigid3d(np.hstack([rot.T, np.zeros((3, 1))])))
-        self.rec.add_rig(rig)
+        self.panoramas: list[_Panorama] = []
 
     def add(
         self,
@@ -154,7 +153,7 @@ class ColmapWriter:
         depth_camera: Camera,
         mask: np.ndarray | None = None,
     ) -> None:
-        """Add one panorama.
+        """Add one panorama (its views are written now, the model at :meth:`finish`).
 
         Args:
             name: the frame's name (its views are ``images/NAME_KK.jpg``).
@@ -163,42 +162,16 @@ class ColmapWriter:
             depth: its depth ``[h,w]`` in ``depth_camera`` (same centre and axes; same unit as ``c2w``;
                 0 unknown); mask: ``[h,w]``, 0 where no point is taken (an occluder).
         """
-        n = len(self.frames)
-        frame_id, first_image = n + 1, n * self.options.yaws + 1
-        world_from_pano = np.asarray(c2w, dtype=np.float64)
-        xyz, colour, observations = self._sample(rgb, camera, depth, depth_camera, mask)
-        pc = self.pc
-        frame = pc.Frame(
-            frame_id=frame_id, rig_id=1, rig_from_world=pc.Rigid3d(np.linalg.inv(world_from_pano)[:3])
-        )
-        for k in range(self.options.yaws):
-            frame.add_data_id(
-                pc.data_t(sensor_id=pc.sensor_t(type=pc.SensorType.CAMERA, id=k + 1), id=first_image + k)
-            )
-        self.rec.add_frame(frame)
+        h, w = depth.shape
+        if (w, h) != depth_camera.size:
+            raise CylsfmError(f"depth of {w}x{h} for a camera of {depth_camera.width}x{depth_camera.height}")
         names = []
         for k, rot in enumerate(self.rotations):
-            file = f"{name}_{k:02d}.{self.options.image_format}"
-            self._write_image(file, render_view(rgb, camera, self.view, rot))
-            image = pc.Image(image_id=first_image + k, name=file, camera_id=k + 1, frame_id=frame_id)
-            image.points2D = pc.Point2DList([pc.Point2D(xy) for xy in observations[k][1]])
-            self.rec.add_image(image)
-            names.append(file)
-        world = xyz @ world_from_pano[:3, :3].T + world_from_pano[:3, 3]
-        tracks: list[list[tuple[int, int]]] = [[] for _ in range(len(xyz))]
-        for k, (which, _) in enumerate(observations):
-            for idx, p in enumerate(which):
-                tracks[p].append((first_image + k, idx))
-        for p, elements in enumerate(tracks):
-            if elements:
-                track = pc.Track()
-                for image_id, idx in elements:
-                    track.add_element(image_id, idx)
-                self.rec.add_point3D(world[p], track, colour[p])
-        seen = [bool(t) for t in tracks]
-        self.points.xyz.append(world[seen])
-        self.points.rgb.append(colour[seen])
-        self.frames.append({"names": names, "world_from_pano": world_from_pano})
+            names.append(f"{name}_{k:02d}.{self.options.image_format}")
+            self._write_image(names[-1], render_view(rgb, camera, self.view, rot))
+        points, colours = self._sample(rgb, camera, depth, depth_camera, mask)
+        pose = np.asarray(c2w, dtype=np.float64)
+        self.panoramas.append(_Panorama(names, pose, depth.astype(np.float32), depth_camera, points, colours))
 
     def _sample(
         self,
@@ -207,37 +180,48 @@ class ColmapWriter:
         depth: np.ndarray,
         depth_camera: Camera,
         mask: np.ndarray | None,
-    ) -> tuple[np.ndarray, np.ndarray, list[tuple[list[int], list[np.ndarray]]]]:
-        """``(points [N,3] in the panorama's frame, colours uint8 [N,3], per view: (the points it sees,
-        their keypoints in COLMAP's pixel coordinates))``."""
-        h, w = depth.shape
-        if (w, h) != depth_camera.size:
-            raise CylsfmError(f"depth of {w}x{h} for a camera of {depth_camera.width}x{depth_camera.height}")
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(points [N,3] in the panorama's frame, colours uint8 [N,3])``: a regular sample of the known
+        depth (at most ``points_per_frame``), coloured by the panorama where each point lies."""
         keep = np.isfinite(depth) & (depth > 0)
         if mask is not None:
             keep &= mask > 0
-        stride = max(1, math.ceil(math.sqrt(keep.sum() / max(self.options.points_per_frame, 1))))
+        n = self.options.points_per_frame
+        stride = max(1, math.ceil(math.sqrt(keep.sum() / max(n, 1))))
         grid = np.zeros_like(keep)
-        grid[stride // 2 :: stride, stride // 2 :: stride] = True
+        grid[stride // 2 :: stride, stride // 2 :: stride] = n > 0
         vv, uu = np.nonzero(keep & grid)
-        if self.options.points_per_frame == 0:
-            vv, uu = vv[:0], uu[:0]
         d = torch.from_numpy(depth.astype(np.float64))[None, None]
         pts = depth_camera.unproject(d)[0].permute(1, 2, 0).numpy()[vv, uu]  # [N,3]
-        uv = camera.project(torch.from_numpy(pts).T.reshape(1, 3, 1, -1))  # the panorama's pixel of each
+        uv = camera.project(torch.from_numpy(pts).T.reshape(1, 3, 1, -1))
         image = torch.from_numpy(np.require(rgb, np.uint8, ["C", "W"])).permute(2, 0, 1)[None].double()
         colour = sample_image(image, uv, camera.wraps)[0][0, :, 0].T.round().clamp(0, 255).byte().numpy()
-        observations = []
+        return pts, colour
+
+    def _seen(self, world: np.ndarray, pano: _Panorama) -> list[tuple[np.ndarray, np.ndarray]]:
+        """For each view of ``pano``: which of the points ``world`` ``[N,3]`` it sees, and their keypoints
+        (COLMAP's pixel coordinates) ``[n,2]``."""
+        inv = np.linalg.inv(pano.world_from_pano)
+        local = world @ inv[:3, :3].T + inv[:3, 3]
+        cam = pano.depth_camera
+        pts = torch.from_numpy(local).T.reshape(1, 3, 1, -1)
+        uv = cam.project(pts)
+        there, inside = sample_image(
+            torch.from_numpy(pano.depth.astype(np.float64))[None, None], uv.round(), cam.wraps
+        )
+        distance = cam.depth_of(pts)[0, 0, 0].numpy()
+        there, inside = there[0, 0, 0].numpy(), inside[0, 0, 0].numpy()
+        agree = inside & (there > 0) & (np.abs(distance - there) <= self.options.track_tolerance * there)
+        out = []
         for rot in self.rotations:
-            in_view = pts @ rot  # view_from_pano @ p, for every point (rows)
-            z = in_view[:, 2]
-            ok = z > 1e-9
+            in_view = local @ rot  # view_from_pano @ p, for every point (rows)
+            ok = agree & (in_view[:, 2] > 1e-9)
             uvv = self.view.project(torch.from_numpy(in_view).T.reshape(1, 3, 1, -1))[0, :, 0].T.numpy()
             ok &= (uvv[:, 0] >= -0.5) & (uvv[:, 0] <= self.view.width - 0.5)
             ok &= (uvv[:, 1] >= -0.5) & (uvv[:, 1] <= self.view.height - 0.5)
             which = np.nonzero(ok)[0]
-            observations.append((which.tolist(), [uvv[i] + 0.5 for i in which]))
-        return pts, colour, observations
+            out.append((which, uvv[which] + 0.5))
+        return out
 
     def _write_image(self, file: str, image: np.ndarray) -> None:
         buf = io.BytesIO()
@@ -249,35 +233,92 @@ class ColmapWriter:
 
     def finish(self) -> dict:
         """Write the COLMAP model, ``transforms.json`` and ``sparse_pc.ply``; returns a summary."""
-        if not self.frames:
+        if not self.panoramas:
             raise CylsfmError(f"{self.out}: no panorama was added")
+        rec = self._reconstruction()
         sparse = self.out / "sparse" / "0"
         sparse.mkdir(parents=True, exist_ok=True)
-        self.rec.write(str(sparse))
+        rec.write(str(sparse))
         if self.options.text:
-            self.rec.write_text(str(sparse))
-        xyz = np.concatenate(self.points.xyz) if self.points.xyz else np.zeros((0, 3))
-        rgb = np.concatenate(self.points.rgb) if self.points.rgb else np.zeros((0, 3), np.uint8)
+            rec.write_text(str(sparse))
+        ids = list(rec.points3D)
+        xyz = np.array([rec.points3D[i].xyz for i in ids]).reshape(-1, 3)
+        rgb = np.array([rec.points3D[i].color for i in ids], dtype=np.uint8).reshape(-1, 3)
         _write_points(self.out / "sparse_pc.ply", xyz, rgb)
         atomic_write_text(self.out / "transforms.json", json.dumps(self._transforms(), indent=1) + "\n")
+        n = rec.num_points3D()
         return {
-            "panoramas": len(self.frames),
-            "images": self.rec.num_images(),
-            "points": self.rec.num_points3D(),
-            "mean_track_length": float(self.rec.compute_mean_track_length())
-            if self.rec.num_points3D()
-            else 0.0,
+            "panoramas": len(self.panoramas),
+            "images": rec.num_images(),
+            "points": n,
+            "mean_track_length": float(rec.compute_mean_track_length()) if n else 0.0,
         }
+
+    def _reconstruction(self):
+        """The COLMAP model: the rig of views, a frame a panorama, its images and the points with tracks."""
+        pc, yaws = self.pc, self.options.yaws
+        rec = pc.Reconstruction()
+        self._add_rig(rec)
+        worlds = [p.points @ p.world_from_pano[:3, :3].T + p.world_from_pano[:3, 3] for p in self.panoramas]
+        tracks = [[[] for _ in range(len(w))] for w in worlds]  # per panorama, per point: (image, index)
+        span = self.options.track_span
+        for j, pano in enumerate(self.panoramas):
+            keypoints: list[list[np.ndarray]] = [[] for _ in range(yaws)]
+            for i in range(max(0, j - span), min(len(self.panoramas), j + span + 1)):
+                for k, (which, xy) in enumerate(self._seen(worlds[i], pano)):
+                    for p, point in zip(which, xy, strict=True):
+                        tracks[i][p].append((j * yaws + k + 1, len(keypoints[k])))
+                        keypoints[k].append(point)
+            frame = pc.Frame(
+                frame_id=j + 1, rig_id=1, rig_from_world=pc.Rigid3d(np.linalg.inv(pano.world_from_pano)[:3])
+            )
+            for k in range(yaws):
+                sensor = pc.sensor_t(type=pc.SensorType.CAMERA, id=k + 1)
+                frame.add_data_id(pc.data_t(sensor_id=sensor, id=j * yaws + k + 1))
+            rec.add_frame(frame)
+            for k in range(yaws):
+                image = pc.Image(
+                    image_id=j * yaws + k + 1, name=pano.names[k], camera_id=k + 1, frame_id=j + 1
+                )
+                image.points2D = pc.Point2DList([pc.Point2D(xy) for xy in keypoints[k]])
+                rec.add_image(image)
+        for i, pano in enumerate(self.panoramas):
+            for p, elements in enumerate(tracks[i]):
+                if elements:
+                    rec.add_point3D(worlds[i][p], self._track(elements), pano.colours[p])
+        return rec
+
+    def _add_rig(self, rec) -> None:
+        """One PINHOLE camera per view direction (centred: COLMAP's pixel centres at +0.5) and their rig."""
+        pc, v = self.pc, self.view
+        params = [float(v.fx), float(v.fy), v.width / 2, v.height / 2]
+        rig = pc.Rig(rig_id=1)
+        for k, rot in enumerate(self.rotations):
+            rec.add_camera(
+                pc.Camera(camera_id=k + 1, model="PINHOLE", width=v.width, height=v.height, params=params)
+            )
+            sensor = pc.sensor_t(type=pc.SensorType.CAMERA, id=k + 1)
+            if k == 0:
+                rig.add_ref_sensor(sensor)
+            else:  # view_from_pano: the rig's frame is the panorama's (the first view's)
+                rig.add_sensor(sensor, pc.Rigid3d(np.hstack([rot.T, np.zeros((3, 1))])))
+        rec.add_rig(rig)
+
+    def _track(self, elements: list[tuple[int, int]]):
+        track = self.pc.Track()
+        for image_id, idx in elements:
+            track.add_element(image_id, idx)
+        return track
 
     def _transforms(self) -> dict:
         v = self.view
         gl = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera axes -> OpenGL's
         frames = []
-        for f in self.frames:
-            for name, rot in zip(f["names"], self.rotations, strict=True):
+        for pano in self.panoramas:
+            for name, rot in zip(pano.names, self.rotations, strict=True):
                 pano_from_view = np.eye(4)
                 pano_from_view[:3, :3] = rot
-                c2w = f["world_from_pano"] @ pano_from_view @ gl
+                c2w = pano.world_from_pano @ pano_from_view @ gl
                 frames.append({"file_path": f"images/{name}", "transform_matrix": c2w.tolist()})
         return {
             "camera_model": "OPENCV",

@@ -35,6 +35,7 @@ from PIL import Image
 from ..atomic import atomic_write_bytes, atomic_write_text
 from ..errors import CylsfmError, InputError
 from ..geometry import Camera, PinholeCamera, rotation_y, sample_image
+from .mesh import Mesh, write_ply
 
 __all__ = ["ColmapWriter", "ViewOptions", "render_view", "view_rotations"]
 
@@ -244,7 +245,10 @@ class ColmapWriter:
         ids = list(rec.points3D)
         xyz = np.array([rec.points3D[i].xyz for i in ids]).reshape(-1, 3)
         rgb = np.array([rec.points3D[i].color for i in ids], dtype=np.uint8).reshape(-1, 3)
-        _write_points(self.out / "sparse_pc.ply", xyz, rgb)
+        cloud = Mesh(xyz.astype(np.float32), rgb, np.zeros((0, 3), np.int32), np.zeros((0, 2), np.int64))
+        write_ply(
+            cloud, self.out / "sparse_pc.ply", ["cylsfm export colmap: the model's points"], points=True
+        )
         atomic_write_text(self.out / "transforms.json", json.dumps(self._transforms(), indent=1) + "\n")
         n = rec.num_points3D()
         return {
@@ -336,19 +340,3 @@ class ColmapWriter:
             "ply_file_path": "sparse_pc.ply",
             "frames": frames,
         }
-
-
-def _write_points(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    from plyfile import PlyData, PlyElement
-
-    vertex = np.empty(
-        len(xyz),
-        dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")],
-    )
-    for i, k in enumerate("xyz"):
-        vertex[k] = xyz[:, i]
-    for i, k in enumerate(("red", "green", "blue")):
-        vertex[k] = rgb[:, i]
-    buf = io.BytesIO()
-    PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(buf)
-    atomic_write_bytes(path, buf.getvalue())

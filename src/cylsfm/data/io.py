@@ -14,6 +14,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -220,6 +221,11 @@ def _check_depth_array(path: Path, arr: object) -> np.ndarray:
     return _checked_depth(arr, path, DatasetError)
 
 
+#: Serialises np.load: its header parsing (ast.literal_eval) fails at random when threads run it at once
+#: ("AST constructor recursion depth mismatch"), and depth files are read by loader threads.
+_NPY_HEADER_LOCK = threading.Lock()
+
+
 def load_depth(path: PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
     """Load a ground-truth depth map: ``float32 [H,W]`` in metres, 0 = unknown.
 
@@ -229,7 +235,8 @@ def load_depth(path: PathLike, size: tuple[int, int] | None = None) -> np.ndarra
     """
     path = Path(path)
     try:
-        arr = np.load(path, allow_pickle=False)
+        with _NPY_HEADER_LOCK:  # the .npy header is parsed by ast, which CPython 3.11 races across threads
+            arr = np.load(path, allow_pickle=False)
     except Exception as exc:
         raise _open_error(path, "depth file", exc) from None
     if isinstance(arr, np.lib.npyio.NpzFile):

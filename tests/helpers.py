@@ -61,7 +61,10 @@ def failing_writes(monkeypatch, pattern: str, error: int) -> None:
 
     def fdopen(fd, *args, **kwargs):
         fh = real_fdopen(fd, *args, **kwargs)
-        return _Full(fh) if fd in doomed else fh
+        if fd in doomed:  # (forget the number: once closed, another thread's file may get it)
+            doomed.discard(fd)
+            return _Full(fh)
+        return fh
 
     monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
     monkeypatch.setattr(os, "fdopen", fdopen)

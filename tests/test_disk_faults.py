@@ -163,3 +163,17 @@ def test_the_helper_fails_only_the_named_file(tmp_path, monkeypatch):
     save_png(tmp_path / "b.png", np.zeros((2, 2, 3), np.uint8))
     with pytest.raises(CylsfmError, match=r"a\.png: cannot write"):
         save_png(tmp_path / "a.png", np.zeros((2, 2, 3), np.uint8))
+
+
+def test_written_files_get_the_permissions_of_a_plain_open(tmp_path):
+    """Not the temporary file's private 0o600: a viewer's folder is meant to be served, frames shared."""
+    import os
+
+    from cylsfm.atomic import atomic_write_text
+
+    mask = os.umask(0o022)
+    os.umask(mask)
+    atomic_write_text(tmp_path / "a.txt", "x")
+    (tmp_path / "b.txt").write_text("x")
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == (tmp_path / "b.txt").stat().st_mode & 0o777
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o666 & ~mask

@@ -1,6 +1,8 @@
 """Atomic file writes: a temporary file in the same directory, then ``os.replace``.
 
-Readers never see a partly written file, and an interrupted write leaves the previous file intact.
+Readers never see a partly written file, and an interrupted write leaves the previous file intact. The
+file gets the permissions a plain ``open`` would give it (``0o666`` less the process's umask), not the
+private ``0o600`` of a temporary file: outputs are meant to be shared and served (a viewer's folder).
 Checkpoints, prepared data, split files, trajectories and reports are all written through here.
 """
 
@@ -16,6 +18,15 @@ from typing import IO
 from .errors import CylsfmError
 
 __all__ = ["atomic_open", "atomic_write_bytes", "atomic_write_text"]
+
+
+def _read_umask() -> int:
+    mask = os.umask(0o022)  # (reading the umask means setting it: done once, at import)
+    os.umask(mask)
+    return mask
+
+
+_MODE = 0o666 & ~_read_umask()
 
 
 @contextmanager
@@ -34,6 +45,7 @@ def atomic_open(path: str | os.PathLike[str]) -> Iterator[IO[bytes]]:
         raise _cannot_write(path, exc) from None
     try:
         with os.fdopen(fd, "wb") as fh:
+            os.fchmod(fh.fileno(), _MODE)
             yield fh
         os.replace(tmp, path)
     except OSError as exc:  # a full disk, a read-only or vanished directory: one line, the old file kept

@@ -100,6 +100,7 @@ def _export_args(p: argparse.ArgumentParser) -> None:
         help="leave out triangles whose corners' depths differ by more than this ratio (default 1.2)",
     )
     mesh.add_argument("--max-depth", type=float, help="leave out pixels farther than this (e.g. the sky)")
+    _vertices_arg(mesh)
 
     _colmap_args(sub)
     st = sub.add_parser("stereo", help="omni-directional stereo panoramas (image or video) for VR")
@@ -129,6 +130,23 @@ def _viewer_args(sub) -> None:
     _depth_source(vw)
     vw.add_argument("--trajectory", help="a TUM trajectory (e.g. from cylsfm odometry) shown in the scene")
     vw.add_argument("--max-ratio", type=float, default=1.2, help="as for export mesh (default 1.2)")
+    _vertices_arg(vw)
+    vw.add_argument(
+        "--texture-width",
+        type=int,
+        default=4096,
+        help="the colour texture's largest width (default 4096; the panorama's own width when smaller)",
+    )
+
+
+def _vertices_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--vertices",
+        type=int,
+        default=262_144,
+        help="vertex budget: the depth is brought to the largest size with at most this many pixels (up to "
+        "the panorama's own width), upsampled guided by the panorama's colours (default 262144)",
+    )
 
 
 @command(
@@ -152,7 +170,7 @@ def run_export(args: argparse.Namespace) -> int:
     if args.action == "mesh":
         from ..export.mesh import build_mesh, write_ply
 
-        mesh = build_mesh(scene, args.max_ratio, args.max_depth)
+        mesh = build_mesh(scene.within(args.vertices), args.max_ratio, args.max_depth)
         comments = [
             f"cylsfm export mesh of {args.pano}",
             f"scale: {scene.scale_note}",
@@ -165,7 +183,15 @@ def run_export(args: argparse.Namespace) -> int:
     if args.action == "viewer":
         from ..export.viewer import export_viewer
 
-        page = export_viewer(scene, args.out, args.max_ratio, args.trajectory, title=args.pano)
+        page = export_viewer(
+            scene,
+            args.out,
+            args.max_ratio,
+            args.trajectory,
+            title=args.pano,
+            vertices=args.vertices,
+            texture_width=args.texture_width,
+        )
         print(f"wrote {page} (open it in a browser; no server needed)")
         return 0
     from ..export.stereo import export_stereo_image

@@ -39,8 +39,14 @@ class Mesh:
     pixels: np.ndarray
 
 
-def build_mesh(scene: Scene, max_ratio: float = MAX_RATIO, max_depth: float | None = None) -> Mesh:
-    """The mesh of ``scene`` (see the module docstring); ``max_depth`` also leaves out farther pixels."""
+def build_mesh(
+    scene: Scene, max_ratio: float = MAX_RATIO, max_depth: float | None = None, split_seam: bool = False
+) -> Mesh:
+    """The mesh of ``scene`` (see the module docstring); ``max_depth`` also leaves out farther pixels.
+
+    ``split_seam``: the first column's vertices once more as a column ``u = W`` after the last, which the
+    seam's cells use instead of wrapping to ``u = 0`` (for a texture, whose coordinate must not jump back
+    across the seam)."""
     if not max_ratio > 1:
         raise InputError(f"max_ratio must be above 1, got {max_ratio}")
     cam, depth = scene.camera, scene.depth.astype(np.float32)
@@ -48,25 +54,32 @@ def build_mesh(scene: Scene, max_ratio: float = MAX_RATIO, max_depth: float | No
     known = np.isfinite(depth) & (depth > 0)
     if max_depth is not None:
         known &= depth <= max_depth
-    points = cam.unproject(torch.from_numpy(np.where(known, depth, 0))[None, None])[0]
-    points = points.permute(1, 2, 0).reshape(-1, 3).numpy()
-    index = np.full(h * w, -1, dtype=np.int64)
+    points = cam.unproject(torch.from_numpy(np.where(known, depth, 0))[None, None])[0].permute(1, 2, 0)
+    image = scene.image
+    cols = w
+    if split_seam:  # the first column again after the last
+        depth, known = np.concatenate([depth, depth[:, :1]], 1), np.concatenate([known, known[:, :1]], 1)
+        points, image = torch.cat([points, points[:, :1]], 1), np.concatenate([image, image[:, :1]], 1)
+        cols = w + 1
+    points = points.reshape(-1, 3).numpy()
+    index = np.full(h * cols, -1, dtype=np.int64)
     flat_known = known.reshape(-1)
     index[flat_known] = np.arange(int(flat_known.sum()))
-    # the cell (v, u) -- (v + 1, u + 1) with u + 1 wrapping to 0: the seam's cells too
+    # the cell (v, u) -- (v + 1, u + 1) with u + 1 wrapping to 0 (or the seam's column): the seam's cells too
     v, u = np.meshgrid(np.arange(h - 1), np.arange(w), indexing="ij")
-    a, b = v * w + u, v * w + (u + 1) % w
-    c, d = (v + 1) * w + u, (v + 1) * w + (u + 1) % w
+    right = u + 1 if split_seam else (u + 1) % w
+    a, b = v * cols + u, v * cols + right
+    c, d = (v + 1) * cols + u, (v + 1) * cols + right
     tris = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
     flat_depth = depth.reshape(-1)
     ok = flat_known[tris].all(1)
     corner = flat_depth[tris]
     ok &= corner.max(1) <= max_ratio * np.maximum(corner.min(1), 1e-12)
     faces = index[tris[ok]].astype(np.int32)
-    vv, uu = np.divmod(np.nonzero(flat_known)[0], w)
+    vv, uu = np.divmod(np.nonzero(flat_known)[0], cols)
     return Mesh(
         points[flat_known].astype(np.float32),
-        scene.image.reshape(-1, 3)[flat_known],
+        image.reshape(-1, 3)[flat_known],
         faces,
         np.stack([uu, vv], -1),
     )

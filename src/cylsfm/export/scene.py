@@ -4,7 +4,9 @@ or metric scale.
 :func:`load_scene` reads a panorama (any image ``cylsfm predict`` takes) and either predicts its depth with
 a checkpoint (the panorama as the network sees it: converted to the model's cylinder when it is not one)
 or reads a depth file (``.npy``, cylindrical depth in metres as in the dataset format, 0 unknown) of a
-cylindrical panorama. The scale of a network's depth is unknown: :func:`Scene.to_metres` fixes it from the
+cylindrical panorama, at the panorama's size or a smaller one of the same aspect ratio. A scene keeps the
+panorama it came from: :meth:`Scene.within` brings it to a chosen number of pixels (a mesh's vertex
+budget), with the colours of the original panorama and the depth upsampled guided by them. The scale of a network's depth is unknown: :func:`Scene.to_metres` fixes it from the
 camera's height above a level ground (the fit of :func:`~cylsfm.geometry.ground.ground_height`), and
 :func:`Scene.normalised` gives one of a chosen median depth (a comfortable stereo for VR when no metres are
 known). :attr:`Scene.scale_note` says which, for the outputs' headers.
@@ -51,27 +53,62 @@ class Scene:
     scale_note: str
     source: tuple[np.ndarray, Camera] | None = None  # the original frame and its camera, for sharper colour
 
-    def at_width(self, width: int) -> Scene:
-        """The scene resampled to a panorama ``width`` wide (same field of view): colour from the original
-        frame when known (else from ``image``), depth interpolated where known (exact area or linear
-        filter, :class:`~cylsfm.data.convert.Resampler`)."""
+    @property
+    def full_width(self) -> int:
+        """The width of the panorama the scene came from (its own colours' resolution)."""
+        if self.source is None:
+            return self.camera.width
+        rgb, src = self.source
+        return max(self.camera.width, round(2 * np.pi * float(src.fx))) if src.wraps else rgb.shape[1]
+
+    def colour_at_width(self, width: int) -> tuple[np.ndarray, CylindricalCamera]:
+        """The panorama's colours ``uint8 [H',W,3]`` at ``width`` (same field of view) and their camera:
+        from the original frame when known (else from ``image``), area-averaged or interpolated
+        (:class:`~cylsfm.data.convert.Resampler`)."""
         from ..data.convert import Resampler
 
         w, h = self.camera.size
-        if width == w:
-            return self
         if width < 8:
             raise InputError(f"width must be at least 8, got {width}")
         cam = self.camera.resized(width, max(2, round(width * h / w)))
         assert isinstance(cam, CylindricalCamera)
+        if width == w and self.source is None:
+            return self.image, cam
         rgb, src = self.source if self.source is not None else (self.image, self.camera)
-        colour = Resampler(src, cam).frames([np.ascontiguousarray(rgb)])[0]
+        return Resampler(src, cam).frames([np.ascontiguousarray(rgb)])[0], cam
+
+    def at_width(self, width: int) -> Scene:
+        """The scene resampled to a panorama ``width`` wide (same field of view): colour as
+        :meth:`colour_at_width`; depth upsampled guided by those colours
+        (:func:`~cylsfm.export.upsample.guided_upsample`: depth edges follow the colour edges), or
+        area-averaged where known when made smaller."""
+        from ..data.convert import Resampler
+        from .upsample import guided_upsample
+
+        if width == self.camera.width:
+            return self
+        colour, cam = self.colour_at_width(width)
+        if width > self.camera.width:
+            depth = guided_upsample(self.depth, colour, wrap=self.camera.wraps)
+            return replace(self, image=colour, depth=depth, camera=cam)
         known = torch.from_numpy((self.depth > 0).astype(np.float32))[None, None]
         d = torch.from_numpy(np.where(self.depth > 0, self.depth, 0).astype(np.float32))[None, None]
         to = Resampler(self.camera, cam)
         weight = to(known)
-        depth = torch.where(weight >= 0.5, to(d) / weight.clamp(min=1e-6), torch.zeros(()))
-        return replace(self, image=colour, depth=depth[0, 0].numpy().astype(np.float32), camera=cam)
+        small = torch.where(weight >= 0.5, to(d) / weight.clamp(min=1e-6), torch.zeros(()))
+        return replace(self, image=colour, depth=small[0, 0].numpy().astype(np.float32), camera=cam)
+
+    def within(self, vertices: int) -> Scene:
+        """The scene at the largest width whose pixels number at most ``vertices`` (at most the original
+        panorama's width, at least the depth's when that fits): a mesh density chosen by a budget, not by
+        the network's size."""
+        if vertices < 64:
+            raise InputError(f"the vertex budget must be at least 64, got {vertices}")
+        w, h = self.camera.size
+        width = min(int(np.sqrt(vertices * w / h)), self.full_width)
+        while width > 8 and width * max(2, round(width * h / w)) > vertices:
+            width -= 1
+        return self.at_width(max(8, width))
 
     @property
     def metric(self) -> bool:
@@ -152,10 +189,24 @@ def load_scene(
         return scene_function(pano, checkpoint, chosen, device, mask_file)(load_image(pano))
     w, h = image_size(pano)
     cyl = _full_cylinder(w, h, cam, str(camera or pano))
-    d = load_depth(Path(depth), size=(w, h))  # type: ignore[arg-type]
+    d = load_depth(Path(depth))  # type: ignore[arg-type]
+    dh, dw = d.shape
+    if (dw, dh) != (w, h) and (dw > w or abs(dw / dh - w / h) > 0.02 * (w / h)):
+        raise CylsfmError(
+            f"{depth}: the depth is {dw}x{dh}, the panorama {w}x{h}: neither the same size nor a smaller one "
+            "of the same aspect ratio"
+        )
     if mask_file is not None:
-        d = np.where(_mask_at(mask_file, (w, h)) > 0, d, np.float32(0)).astype(np.float32)
-    return Scene(load_image(pano), d, cyl, "metres", "metres (the depth file's)")
+        d = np.where(_mask_at(mask_file, (dw, dh)) > 0, d, np.float32(0)).astype(np.float32)
+    rgb = load_image(pano)
+    if (dw, dh) == (w, h):
+        return Scene(rgb, d, cyl, "metres", "metres (the depth file's)")
+    coarse = cyl.resized(dw, dh)
+    assert isinstance(coarse, CylindricalCamera)
+    from ..data.convert import Resampler
+
+    image = Resampler(cyl, coarse).frames([rgb])[0]
+    return Scene(image, d, coarse, "metres", "metres (the depth file's)", source=(rgb, cyl))
 
 
 def _mask_at(path: Path, size: tuple[int, int]) -> np.ndarray:

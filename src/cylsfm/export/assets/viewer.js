@@ -1,7 +1,9 @@
 // cylsfm viewer: the panorama's 3D reconstruction, looked at from where the camera stood.
-// Scene data (window.CYLSFM_SCENE, written by `cylsfm export viewer`): base64 little-endian arrays of
-// positions (float32, our camera axes x right, y down, z forward), colours and depth colours (uint8 RGB),
-// triangle indices (uint32), and an optional trajectory (float32 x,y,z per pose).
+// Scene data (window.CYLSFM_SCENE, written by `cylsfm export viewer`): base64 little-endian arrays of the
+// mesh's positions (float32, our camera axes x right, y down, z forward), texture coordinates (float32 s
+// right, t down, into the panorama) and triangle indices (uint32); the panorama and the depth's colours as
+// data URLs; a far textured cylinder with caps (the same arrays) shown wherever the mesh has no triangle;
+// and an optional trajectory (float32 x,y,z per pose).
 (function () {
   "use strict";
   var data = window.CYLSFM_SCENE;
@@ -26,25 +28,36 @@
   renderer.setSize(window.innerWidth, window.innerHeight);
   document.body.appendChild(renderer.domElement);
   var scene = new THREE.Scene();
-  var camera = new THREE.PerspectiveCamera(75, window.innerWidth / window.innerHeight, 0.01 * data.scale, 1000 * data.scale);
+  // a horizontal field of view of about 100 degrees, at most 75 vertically
+  function verticalFov() {
+    var aspect = window.innerWidth / window.innerHeight;
+    var v = 2 * Math.atan(Math.tan(50 * Math.PI / 180) / aspect) * 180 / Math.PI;
+    return Math.min(75, v);
+  }
+  var camera = new THREE.PerspectiveCamera(verticalFov(), window.innerWidth / window.innerHeight, 0.01 * data.scale, data.far);
   camera.rotation.order = "YXZ";
 
-  var geometry = new THREE.BufferGeometry();
-  geometry.setAttribute("position", new THREE.BufferAttribute(toThree(decode(data.positions, Float32Array)), 3));
-  var colours = new THREE.BufferAttribute(decode(data.colours, Uint8Array), 3, true);
-  var depthColours = new THREE.BufferAttribute(decode(data.depthColours, Uint8Array), 3, true);
-  geometry.setAttribute("color", colours);
-  var indices = decode(data.indices, Uint32Array);
-  var material, object;
-  if (indices.length) {
-    geometry.setIndex(new THREE.BufferAttribute(indices, 1));
-    material = new THREE.MeshBasicMaterial({ vertexColors: true, side: THREE.DoubleSide });
-    object = new THREE.Mesh(geometry, material);
-  } else {
-    material = new THREE.PointsMaterial({ vertexColors: true, size: 2, sizeAttenuation: false });
-    object = new THREE.Points(geometry, material);
+  function texture(url, onload) {
+    var t = new THREE.TextureLoader().load(url, onload);
+    t.flipY = false;  // t counts rows down from the panorama's top
+    t.wrapS = THREE.RepeatWrapping;  // the seam's split column has s just above 1
+    t.anisotropy = renderer.capabilities.getMaxAnisotropy();
+    return t;
   }
-  scene.add(object);
+  var pending = 2;
+  function loaded() { if (--pending === 0) { update(); document.title += " (ready)"; } }
+  var colourMap = texture(data.texture, loaded), depthMap = texture(data.depthTexture, loaded);
+
+  function surface(arrays) {
+    var g = new THREE.BufferGeometry();
+    g.setAttribute("position", new THREE.BufferAttribute(toThree(decode(arrays.positions, Float32Array)), 3));
+    g.setAttribute("uv", new THREE.BufferAttribute(decode(arrays.uv, Float32Array), 2));
+    g.setIndex(new THREE.BufferAttribute(decode(arrays.indices, Uint32Array), 1));
+    var m = new THREE.MeshBasicMaterial({ map: colourMap, side: THREE.DoubleSide });
+    scene.add(new THREE.Mesh(g, m));
+    return m;
+  }
+  var materials = [surface(data), surface(data.background)];
 
   if (data.trajectory) {
     var path = new THREE.BufferGeometry();
@@ -62,7 +75,7 @@
   }
   function toggle() {
     showDepth = !showDepth;
-    geometry.setAttribute("color", showDepth ? depthColours : colours);
+    materials.forEach(function (m) { m.map = showDepth ? depthMap : colourMap; m.needsUpdate = true; });
     document.getElementById("toggle").textContent = showDepth ? "colour" : "depth";
     update();
   }
@@ -88,6 +101,7 @@
   document.getElementById("toggle").addEventListener("click", toggle);
   window.addEventListener("resize", function () {
     camera.aspect = window.innerWidth / window.innerHeight;
+    camera.fov = verticalFov();
     camera.updateProjectionMatrix();
     renderer.setSize(window.innerWidth, window.innerHeight);
     update();
@@ -108,5 +122,4 @@
       window.dispatchEvent(new PointerEvent("pointerup", { clientX: x0 + d[0], clientY: y0 + (d[1] || 0) }));
     }
   });
-  document.title += " (ready)";
 })();

@@ -100,11 +100,16 @@ def test_images_and_a_folder(ckpt, tmp_path, capsys):
             k = -(-1024 // w)
             assert im.mode == "RGB" and im.size[0] == k * w >= 1024 and im.size[1] > 2 * k * h
             panel = np.asarray(im)[k * h + 2 : 2 * k * h + 2]
-            coloured = colorize_depth(depth, *depth_limits(depth))
+            # one colour range for every picture of an input, from its frames (a lone image: its own)
+            scale = json.loads((out / name / "scale.json").read_text())
+            assert scale["unit"] == "network units" and scale["factor"] == 1.0
+            if name != "frames":
+                assert np.allclose(scale["colour_range"], depth_limits(depth))
+            coloured = colorize_depth(depth, *scale["colour_range"])
             np.testing.assert_array_equal(panel, np.repeat(np.repeat(coloured, k, 0), k, 1))
-    assert sorted(p.name for p in (out / "frames").iterdir()) == [
-        f"f{i:02d}.{s}" for i in range(3) for s in ("npy", "png")
-    ]
+    assert sorted(p.name for p in (out / "frames").iterdir()) == sorted(
+        [f"f{i:02d}.{s}" for i in range(3) for s in ("npy", "png")] + ["scale.json"]
+    )
     _no_temporaries(out)
 
 
@@ -113,7 +118,7 @@ def test_video_with_preview_and_fps(ckpt, tmp_path):
     out = tmp_path / "out"
     assert _run(ckpt, vid, "--out", out, "--no-png", "--batch-size", "4") == 0
     names = sorted(p.name for p in (out / "ride").iterdir())
-    assert names == [f"{i:06d}.npy" for i in range(6)]  # --no-png
+    assert names == [f"{i:06d}.npy" for i in range(6)] + ["scale.json"]  # --no-png
     predictor = Predictor.from_checkpoint(ckpt, "cpu")
     with av.open(str(vid)) as container:
         decoded = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
@@ -320,3 +325,42 @@ def test_sigterm_stops_predict_and_the_same_command_continues(ckpt, tmp_path, mo
     # other settings: nothing is kept (a different batch size could change the values in the last bit)
     assert _run(ckpt, vid, "--batch-size", "3", "--out", cut) == 0
     assert "kept" not in capsys.readouterr().out
+
+
+def _ground_plane_depth(self, images, camera, mask=None):
+    """A stand-in network: every frame sees a level ground ``1 + mean colour`` units below the camera
+    (and a wall 5 units away above the horizon), so each frame has its own scale."""
+    h = camera.rays(camera.pixel_grid(1, dtype=torch.float64))[0, 1].float()  # y / d per pixel
+    below = h > 0.05
+    depth = []
+    for image in images:
+        height = 1.0 + float(image.mean())
+        depth.append(torch.where(below, height / h.clamp(min=1e-3), torch.full_like(h, 5.0)))
+    return torch.stack(depth)[:, None]
+
+
+def test_camera_height_gives_metres_by_one_factor_for_the_whole_input(ckpt, tmp_path, monkeypatch, capsys):
+    from cylsfm.geometry.ground import ground_height
+
+    monkeypatch.setattr(Predictor, "depth", _ground_plane_depth)
+    folder = tmp_path / "ride"
+    for i in range(5):
+        _png(folder / f"f{i}.png", 128, 32, i)
+    out = tmp_path / "out"
+    assert _run(ckpt, folder, "--out", out, "--camera-height", "1.6") == 0
+    assert "metres: one factor for every frame" in capsys.readouterr().err
+    scale = json.loads((out / "ride" / "scale.json").read_text())
+    assert scale["unit"] == "metres" and scale["ground_fits"] == scale["frames_sampled"] == 5
+    cam = CylindricalCamera.full(128, 32, 1.0)
+    heights = [1.0 + _load_rgb(folder / f"f{i}.png").mean() / 255 for i in range(5)]
+    assert scale["factor"] == pytest.approx(1.6 / np.median(heights), rel=1e-3)
+    for i in range(5):
+        depth = np.load(out / "ride" / f"f{i}.npy")
+        fitted = float(ground_height(torch.from_numpy(depth)[None, None], cam)[0])
+        assert fitted == pytest.approx(heights[i] * scale["factor"], rel=1e-3)  # one factor, not per frame
+    # the median frame's ground lies 1.6 m below
+    fits = sorted(
+        float(ground_height(torch.from_numpy(np.load(f))[None, None], cam)[0])
+        for f in sorted((out / "ride").glob("*.npy"))
+    )
+    assert fits[2] == pytest.approx(1.6, rel=1e-3) and fits[0] < 1.6 < fits[-1]

@@ -36,6 +36,14 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
         "(equirectangular input: equirectangular depth)",
     )
     p.add_argument("--fps", type=float, help="take about N frames a second from videos (default: all)")
+    p.add_argument(
+        "--camera-height",
+        type=float,
+        metavar="METRES",
+        help="depth in metres: the camera's height above a level ground sets one factor for all frames of "
+        "an input (fitted in up to 32 of its frames); default: the network's units. OUT/NAME/scale.json "
+        "says which",
+    )
 
 
 @command("predict", "depth maps for panoramic images, folders and videos with a trained model", _predict_args)
@@ -53,6 +61,7 @@ def run_predict(args: argparse.Namespace) -> int:
         full_resolution=args.full_resolution,
         fps=args.fps,
         mask=args.mask,
+        camera_height=args.camera_height,
     )
     videos = f" and {len(summary.videos)} preview video(s)" if summary.videos else ""
     kept = f" ({summary.resumed} of them kept from an interrupted run)" if summary.resumed else ""

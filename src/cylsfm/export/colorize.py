@@ -174,17 +174,20 @@ def depth_picture(
     unit: str = "network units",
     min_width: int = 1024,
     cmap: str = "magma",
+    limits: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """A picture a person can read: the input above its coloured depth, both enlarged by a whole factor to
     at least ``min_width`` pixels (the depth by repeating pixels), and a colour scale labelled in ``unit``.
 
-    ``image`` ``uint8 [H,W,3]`` and ``depth [H,W]`` are of one camera. Returns ``uint8`` RGB.
+    ``image`` ``uint8 [H,W,3]`` and ``depth [H,W]`` are of one camera; ``limits``: the depths of the
+    brightest and darkest colours (default: this depth's, :func:`depth_limits`; fix them to compare the
+    frames of a video). Returns ``uint8`` RGB.
     """
     from PIL import Image
 
     h, w = depth.shape
     k = max(1, math.ceil(min_width / w))
-    limits = depth_limits(depth) or (1.0, 2.0)
+    limits = limits or depth_limits(depth) or (1.0, 2.0)
     colour = colorize_depth(depth, *limits, cmap=cmap)
     big_depth = np.repeat(np.repeat(colour, k, 0), k, 1)
     big_image = np.asarray(

@@ -4,7 +4,10 @@ Inputs are image files (png, jpg ...), folders (every image directly inside, sor
 (anything PyAV decodes: mp4, mkv, mov, webm ...). For an input named ``NAME`` (its file stem or folder
 name; a second input of the same name becomes ``NAME-2``) the outputs are::
 
-    OUT/NAME/FRAME.npy   float32 [H,W] depth in the network's (unknown) scale, > 0
+    OUT/NAME/FRAME.npy   float32 [H,W] depth, > 0: in the network's (unknown) scale, the same for every
+                         frame, or in metres with a camera height (one factor for the whole input)
+    OUT/NAME/scale.json  which scale, how it was found, the colour range every picture of NAME shares
+                         (cylsfm.predict.scale)
     OUT/NAME/FRAME.png   a picture: the frame as the network sees it above its depth coloured by inverse
                          depth (near = bright), enlarged to at least 1024 pixels wide, with a colour scale
                          (cylsfm.export.colorize.depth_picture)
@@ -47,6 +50,7 @@ from ..model.plan import (
     plan_input,
 )
 from .run import PredictSummary, predict
+from .scale import RideScale, ride_scale
 
 __all__ = [
     "ASPECT_TOLERANCE",
@@ -56,6 +60,7 @@ __all__ = [
     "InputSource",
     "Plan",
     "PredictSummary",
+    "RideScale",
     "coverage",
     "discover_inputs",
     "model_camera",
@@ -63,4 +68,5 @@ __all__ = [
     "plan_input",
     "predict",
     "read_frames",
+    "ride_scale",
 ]

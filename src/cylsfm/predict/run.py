@@ -28,8 +28,9 @@ from ..model import Predictor
 from ..model.checkpoint import checkpoint_id
 from ..model.plan import Plan, model_vfov_h, network_images, network_mask, plan_input
 from ..runtime import file_id, fingerprint, progress_bar
+from .scale import RideScale, network_depth, ride_scale
 
-__all__ = ["PredictSummary", "predict"]
+__all__ = ["PredictSummary", "RideScale", "predict", "ride_scale"]
 
 
 #: The settings of the outputs in ``OUT``: a run with the same settings continues where one stopped.
@@ -76,6 +77,7 @@ def predict(
     progress: bool = True,
     full_resolution: bool = False,
     mask: str | os.PathLike[str] | None = None,
+    camera_height: float | None = None,
 ) -> PredictSummary:
     """Predict depth for images, image folders and videos; see :mod:`cylsfm.predict` for the outputs.
 
@@ -96,6 +98,11 @@ def predict(
         mask: an image of the inputs' aspect ratio, white where they see the scene and black on an occluder
             fixed to the camera (a helmet, a mount): the network sees it filled from the pixels around it,
             and its depth is written as 0 (unknown).
+        camera_height: the camera's height above a level ground in metres: every input's depth is written
+            in metres, by one factor for the whole input (:func:`ride_scale`); ``None``: network units.
+
+    Every frame of an input is in one scale (never normalised frame by frame), which ``OUT/NAME/scale.json``
+    states; its pictures and video preview share one colour range.
 
     ``OUT/predict.json`` records the settings: the same command after an interruption keeps the frames
     already written (in whole batches) and predicts the rest, as an uninterrupted run would.
@@ -123,6 +130,7 @@ def predict(
     out.mkdir(parents=True, exist_ok=True)
     options = {"batch_size": batch_size, "png": png, "full_resolution": full_resolution, "fps": fps}
     options["mask"] = file_id(Path(mask)) if mask is not None else None
+    options["camera_height"] = camera_height
     resume = _same_settings(out / MANIFEST, _settings(checkpoint, sources, cam, options))
     total = expected_frames(sources, fps)
     bar = progress_bar(total=total, desc="predict", unit="frame", enabled=progress, leave=True)
@@ -130,7 +138,8 @@ def predict(
     try:
         with torch.inference_mode():
             for source in sources:
-                outputs = _Outputs(png, full_resolution, resume)
+                scale = _scale_of(source, plan_for, predictor, fps, camera_height, out)
+                outputs = _Outputs(png, full_resolution, resume, scale)
                 _run_source(source, plan_for, predictor, out, batch_size, outputs, fps, bar, summary)
     finally:
         bar.close()
@@ -196,7 +205,7 @@ def _run_source(
             h, w = batch[0][1].shape[:2]
             plan = plan_for(source, (w, h))
             if outputs.resume and all(outputs.written(dest, stem) for stem, _ in batch):
-                _preview_batch(batch, plan, predictor, dest, writer)  # (the same batches: the same values)
+                _preview_batch(batch, plan, predictor, dest, writer, outputs.scale.limits)  # (same values)
                 summary.resumed += len(batch)
             else:
                 _run_batch(batch, plan, plan_for.mask(source, (w, h)), predictor, dest, outputs, writer)
@@ -234,22 +243,22 @@ def _run_batch(
     images = network_images([rgb for _, rgb in batch], plan, predictor.device)
     cam = plan.network_input
     win = predictor.window(cam)
-    depth = predictor.depth(images, cam, **({"mask": seen} if seen is not None else {}))[:, 0]
-    if seen is not None:  # the occluder's depth: unknown
-        depth = depth * (seen if win is None else seen[..., win[0] : win[1]])[:, 0].to(depth.device)
-    depth = depth.float().cpu().numpy()
+    depth, _ = network_depth(images, plan, seen, predictor)
+    depth = depth * np.float32(outputs.scale.factor)
     shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
+    unit, limits = outputs.scale.unit, outputs.scale.limits
     full = _full_resolution(depth, plan, cam, predictor.fov) if outputs.full else None
     for i, (stem, rgb) in enumerate(batch):
         save_depth(dest / f"{stem}.npy", depth[i])
         if outputs.png:
-            save_png(dest / f"{stem}.png", depth_picture(shown[i], depth[i], "network units"))
+            save_png(dest / f"{stem}.png", depth_picture(shown[i], depth[i], unit, limits=limits))
         if full is not None:
             save_depth(dest / f"{stem}_full.npy", full[i])
             if outputs.png:
-                save_png(dest / f"{stem}_full.png", depth_picture(rgb, full[i], "network units", min_width=0))
+                picture = depth_picture(rgb, full[i], unit, min_width=0, limits=limits)
+                save_png(dest / f"{stem}_full.png", picture)
         if writer is not None:
-            writer.write(side_by_side([shown[i], colorize_depth(depth[i])]))
+            writer.write(side_by_side([shown[i], colorize_depth(depth[i], *(limits or (None, None)))]))
 
 
 def _preview_batch(
@@ -258,6 +267,7 @@ def _preview_batch(
     predictor: Predictor,
     dest: Path,
     writer: VideoWriter | None,
+    limits: tuple[float, float] | None,
 ) -> None:
     """A batch whose files an interrupted run wrote: only its frames of the video preview, from them."""
     if writer is None:
@@ -266,7 +276,33 @@ def _preview_batch(
     win = predictor.window(plan.network_input)
     shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
     for i, (stem, _) in enumerate(batch):
-        writer.write(side_by_side([shown[i], colorize_depth(load_depth(dest / f"{stem}.npy"))]))
+        depth = load_depth(dest / f"{stem}.npy")
+        writer.write(side_by_side([shown[i], colorize_depth(depth, *(limits or (None, None)))]))
+
+
+def _scale_of(
+    source: InputSource,
+    plans: _Plans,
+    predictor: Predictor,
+    fps: float | None,
+    height: float | None,
+    out: Path,
+) -> RideScale:
+    """The input's one scale (:func:`ride_scale`), said on stderr and in ``OUT/NAME/scale.json``."""
+    scale = ride_scale(source, plans, predictor, fps, height)
+    _write_if_changed(out / source.name / "scale.json", json.dumps(scale.to_dict(), indent=1) + "\n")
+    print(f"{source.name}: {scale.note}", file=sys.stderr)
+    return scale
+
+
+def _write_if_changed(path: Path, text: str) -> None:
+    """``text`` into ``path`` unless it holds it already (a continued run leaves its files untouched)."""
+    try:
+        if path.read_text() == text:
+            return
+    except OSError:
+        pass
+    atomic_write_text(path, text)
 
 
 def _settings(checkpoint: Any, sources: list[InputSource], camera: Camera | None, options: dict) -> dict:
@@ -297,7 +333,8 @@ def _same_settings(path: Path, settings: dict[str, Any]) -> bool:
 class _Outputs:
     png: bool
     full: bool
-    resume: bool = False
+    resume: bool
+    scale: RideScale
 
     def written(self, dest: Path, stem: str) -> bool:
         """Whether every file of frame ``stem`` is there (each was written atomically: whole)."""

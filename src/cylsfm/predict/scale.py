@@ -1,0 +1,115 @@
+"""One depth scale for every frame of an input (a video, a folder: a ride).
+
+A network's depth is in its own unknown unit, the same for every frame (never normalised frame by frame;
+its spread over a ride is what ``cylsfm evaluate depth`` reports as scale consistency). With the camera's
+height above a level ground, one factor for the whole input turns it into metres: the camera height over
+the median of the ground heights fitted in up to :data:`SAMPLES` frames spread evenly over the input
+(:func:`~cylsfm.geometry.ground.ground_height`, :func:`~cylsfm.geometry.ground.metric_scale`). The same
+sample gives the pictures' and the preview's one colour range.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..data.inputs import InputSource, expected_frames, read_frames
+from ..export.colorize import depth_limits
+from ..geometry import Camera, CylindricalCamera
+from ..geometry.ground import ground_height, metric_scale
+from ..model import Predictor
+from ..model.plan import Plan, network_images
+
+__all__ = ["SAMPLES", "RideScale", "network_depth", "ride_scale"]
+
+#: Frames of an input sampled for its scale and colour range.
+SAMPLES = 32
+
+
+@dataclass(frozen=True)
+class RideScale:
+    """The scale of every frame of one input.
+
+    Attributes:
+        factor: what the network's depth is multiplied by (1 for network units).
+        unit: ``"metres"`` or ``"network units"``.
+        note: one line saying which scale and how it was found.
+        limits: the depths ``(vmin, vmax)`` of the brightest and darkest colours of every picture (in
+            ``unit``), ``None`` when the sample has no valid depth.
+        sampled: frames sampled; ``ground_fits``: of them, frames with a fitted ground.
+    """
+
+    factor: float
+    unit: str
+    note: str
+    limits: tuple[float, float] | None
+    sampled: int
+    ground_fits: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "unit": self.unit,
+            "factor": self.factor,
+            "note": self.note,
+            "colour_range": list(self.limits) if self.limits else None,
+            "frames_sampled": self.sampled,
+            "ground_fits": self.ground_fits,
+        }
+
+
+def network_depth(
+    images: torch.Tensor, plan: Plan, seen: torch.Tensor | None, predictor: Predictor
+) -> tuple[np.ndarray, Camera]:
+    """The network's depth ``float32 [B,h,w]`` of ``images`` ``[B,3,H,W]`` (0 under the mask ``seen``) and
+    the camera it is in (the centred crop a model trained on crops sees)."""
+    cam = plan.network_input
+    win = predictor.window(cam)
+    depth = predictor.depth(images, cam, **({"mask": seen} if seen is not None else {}))[:, 0]
+    if seen is not None:  # the occluder's depth: unknown
+        depth = depth * (seen if win is None else seen[..., win[0] : win[1]])[:, 0].to(depth.device)
+    net = cam if predictor.fov >= 360 else cam.crop(predictor.fov)  # type: ignore[attr-defined]
+    assert isinstance(net, CylindricalCamera)
+    return depth.float().cpu().numpy(), net
+
+
+def ride_scale(
+    source: InputSource,
+    plans: Any,
+    predictor: Predictor,
+    fps: float | None,
+    camera_height: float | None,
+) -> RideScale:
+    """The scale of ``source``'s frames (see the module docstring); ``plans(source, size) -> Plan`` and
+    ``plans.mask(source, size)`` give each frame size's plan and mask.
+
+    Raises:
+        InputError: ``camera_height`` given but no sampled frame shows a level ground.
+    """
+    total = expected_frames([source], fps)
+    every = max(1, math.ceil(total / SAMPLES)) if total else 10
+    depths, heights = [], []
+    with torch.inference_mode():
+        for i, (_, rgb) in enumerate(read_frames(source, fps)):
+            if i % every or len(depths) >= SAMPLES:
+                continue
+            size = (rgb.shape[1], rgb.shape[0])
+            plan = plans(source, size)
+            images = network_images([rgb], plan, predictor.device)
+            depth, cam = network_depth(images, plan, plans.mask(source, size), predictor)
+            depths.append(depth[0])
+            heights.append(float(ground_height(torch.from_numpy(depth)[:, None], cam)[0]))
+    if camera_height is None:
+        limits = depth_limits(np.concatenate([d.ravel() for d in depths])) if depths else None
+        note = "network units: one unknown scale, the network's, for every frame (not normalised per frame)"
+        return RideScale(1.0, "network units", note, limits, len(depths))
+    factor, fits = metric_scale(np.asarray(heights), camera_height)
+    limits = depth_limits(np.concatenate([d.ravel() * factor for d in depths]))
+    note = (
+        f"metres: one factor for every frame, {factor:.4g} m per network unit (the camera {camera_height:g} m "
+        f"above the ground fitted in {fits} of {len(depths)} frames sampled, median)"
+    )
+    return RideScale(factor, "metres", note, limits, len(depths), fits)

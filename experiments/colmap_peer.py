@@ -170,9 +170,7 @@ def _colmap_measures(seq: Path, models: dict, n: int) -> dict:
 
 
 def run_cylsfm(name: str, checkpoint: str, out: Path, refine: bool) -> dict:
-    result = cylsfm.odometry(
-        DATA / name, checkpoint, out, OdometrySettings(progress=False, refine=refine)
-    )
+    result = cylsfm.odometry(DATA / name, checkpoint, out, OdometrySettings(progress=False, refine=refine))
     assert result.metrics is not None
     ours = next(iter(result.metrics.values()))
     return {

@@ -141,7 +141,7 @@ def run_colmap(seq: Path, work: Path, n: int, args: argparse.Namespace) -> dict:
     (work / "sparse").mkdir(parents=True)
     models = pycolmap.incremental_mapping(database, images, work / "sparse", mapping)
     seconds = time.perf_counter() - start
-    return {**_colmap_measures(seq, models, n), "seconds": seconds}
+    return {**_colmap_measures(seq, models, n), "seconds": seconds, "frames": n}
 
 
 def _colmap_measures(seq: Path, models: dict, n: int) -> dict:
@@ -161,12 +161,36 @@ def _colmap_measures(seq: Path, models: dict, n: int) -> dict:
         c2w.append(world)
     order = np.argsort(index)
     index, c2w = np.asarray(index)[order], np.stack(c2w)[order]
-    stats, _ = trajectory_metrics(gt, gt_t, c2w, gt_t[index])
+    stats, aligned = trajectory_metrics(gt, gt_t, c2w, gt_t[index])
+    # gross failures: frames placed more than 10x the median error away (and at least 1 m)
+    err = np.linalg.norm(aligned - gt[index][:, :3, 3], axis=1)
+    wrong = err > max(10 * float(np.median(err)), 1.0)
+    rest, _ = trajectory_metrics(gt, gt_t, c2w[~wrong], gt_t[index][~wrong])
     return {
         "registered": len(index) / n,
         "models": len(models),
         **{m: stats[m] for m in MEASURES},
+        "misplaced": [int(i) for i in index[wrong]],
+        "ape_rmse_without_misplaced": rest["ape_rmse"],
+        "rpe_trans_rmse_without_misplaced": rest["rpe_trans_rmse"],
     }
+
+
+def remeasure(out: Path) -> dict:
+    """The table again from the COLMAP models already in ``OUT`` (their wall times kept)."""
+    import pycolmap
+
+    table = json.loads((out / "table.json").read_text())
+    for name, rows in table.items():
+        seq = out / "equirect" / name
+        models = {
+            int(d.name): pycolmap.Reconstruction(d)
+            for d in sorted((out / "colmap" / name / "sparse").iterdir())
+            if d.is_dir()
+        }
+        n = round(rows["COLMAP (panorama rig)"].get("frames") or len(list((seq / "images").glob("*.png"))))
+        rows["COLMAP (panorama rig)"].update(_colmap_measures(seq, models, n))
+    return table
 
 
 def run_cylsfm(name: str, checkpoint: str, out: Path, refine: bool) -> dict:
@@ -183,21 +207,32 @@ def run_cylsfm(name: str, checkpoint: str, out: Path, refine: bool) -> dict:
 
 
 def show(table: dict) -> None:
-    print("| ride | method | APE rmse (m) | RPE trans (m) | RPE rot (deg) | registered | models | wall (s) |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| ride | method | APE rmse (m) | RPE trans (m) | RPE rot (deg) | registered | models | misplaced "
+        "frames: APE, RPE without them | wall (s) |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     for ride, rows in table.items():
         for method, r in rows.items():
             cells = ["-" if r.get(m) is None else f"{r[m]:.3f}" for m in MEASURES]
             models = r.get("models", "")
+            wrong = ""
+            if r.get("misplaced"):
+                wrong = (
+                    f"{len(r['misplaced'])} ({', '.join(map(str, r['misplaced']))}): "
+                    f"{r['ape_rmse_without_misplaced']:.3f}, {r['rpe_trans_rmse_without_misplaced']:.3f}"
+                )
+            elif "misplaced" in r:
+                wrong = "0"
             print(
-                f"| {ride} | {method} | {' | '.join(cells)} | {r['registered']:.0%} | {models} | "
+                f"| {ride} | {method} | {' | '.join(cells)} | {r['registered']:.0%} | {models} | {wrong} | "
                 f"{r['seconds']:.0f} |"
             )
         ref = rows.get("cylsfm odometry", {})
         if "constant_velocity" in ref:
             print(
                 f"| {ride} | constant velocity / zero motion (APE) | {ref['constant_velocity']:.3f} / "
-                f"{ref['zero_motion']:.3f} | | | | | |"
+                f"{ref['zero_motion']:.3f} | | | | | | |"
             )
 
 
@@ -213,7 +248,13 @@ def main() -> None:
     p.add_argument("--view-size", type=int, default=320)
     p.add_argument("--overlap", type=int, default=5, help="sequential matching: frames each side")
     p.add_argument("--skip-cylsfm", action="store_true")
+    p.add_argument("--remeasure", action="store_true", help="only measure the COLMAP models in OUT again")
     args = p.parse_args()
+    if args.remeasure:
+        table = remeasure(args.out)
+        (args.out / "table.json").write_text(json.dumps(table, indent=2) + "\n")
+        show(table)
+        return
     table: dict = {}
     for name in args.rides or test_rides():
         seq = equirect_ride(name, args.out, args.equirect_width)

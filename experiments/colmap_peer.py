@@ -45,6 +45,7 @@ import cylsfm
 from cylsfm.data import read_split
 from cylsfm.data.io import load_image, read_tum, save_png
 from cylsfm.data.synth import generate_dataset
+from cylsfm.evaluate.motion import TURN_DEG, rotation_error_deg, yaw_angle
 from cylsfm.evaluate.pose_metrics import trajectory_metrics
 from cylsfm.export.colmap import render_view, view_rotations
 from cylsfm.geometry import EquirectangularCamera, PinholeCamera
@@ -166,7 +167,9 @@ def _colmap_measures(seq: Path, models: dict, n: int) -> dict:
     err = np.linalg.norm(aligned - gt[index][:, :3, 3], axis=1)
     wrong = err > max(10 * float(np.median(err)), 1.0)
     rest, _ = trajectory_metrics(gt, gt_t, c2w[~wrong], gt_t[index][~wrong])
+    where = _trajectory_where(seq, index, c2w)
     return {
+        **where,
         "registered": len(index) / n,
         "models": len(models),
         **{m: stats[m] for m in MEASURES},
@@ -174,6 +177,31 @@ def _colmap_measures(seq: Path, models: dict, n: int) -> dict:
         "ape_rmse_without_misplaced": rest["ape_rmse"],
         "rpe_trans_rmse_without_misplaced": rest["rpe_trans_rmse"],
     }
+
+
+def step_errors(gt: np.ndarray, est: np.ndarray, scale: float) -> dict:
+    """Where the errors are: the mean error of one frame's step on turning steps (true yaw over
+    ``TURN_DEG`` degrees) and on straight ones: translation (metres, the estimate times its Sim(3)
+    ``scale``) and rotation (degrees). ``gt``, ``est``: camera-to-world ``[N,4,4]`` of the same frames."""
+    true = np.linalg.inv(gt[:-1]) @ gt[1:]
+    pred = np.linalg.inv(est[:-1]) @ est[1:]
+    turning = np.abs(yaw_angle(true)) > np.radians(TURN_DEG)
+    trans = np.linalg.norm(scale * pred[:, :3, 3] - true[:, :3, 3], axis=1)
+    rot = rotation_error_deg(pred, true)
+    out = {"turning_steps": int(turning.sum()), "straight_steps": int((~turning).sum())}
+    for name, sel in (("turning", turning), ("straight", ~turning)):
+        out[f"step_trans_{name}"] = float(trans[sel].mean()) if sel.any() else None
+        out[f"step_rot_deg_{name}"] = float(rot[sel].mean()) if sel.any() else None
+    return out
+
+
+def _trajectory_where(seq: Path, index: np.ndarray, c2w: np.ndarray) -> dict:
+    """:func:`step_errors` over the consecutive frames of ``index`` (frame numbers) of ride ``seq``."""
+    gt_t, gt = read_tum(seq / "poses.txt")
+    stats, _ = trajectory_metrics(gt, gt_t, c2w, gt_t[index])
+    pairs = np.flatnonzero(np.diff(index) == 1)
+    keep = np.unique(np.concatenate([pairs, pairs + 1]))
+    return step_errors(gt[index[keep]], c2w[keep], stats["scale"]) if len(keep) > 1 else {}
 
 
 def remeasure(out: Path) -> dict:
@@ -190,6 +218,13 @@ def remeasure(out: Path) -> dict:
         }
         n = round(rows["COLMAP (panorama rig)"].get("frames") or len(list((seq / "images").glob("*.png"))))
         rows["COLMAP (panorama rig)"].update(_colmap_measures(seq, models, n))
+        for method, file in (
+            ("cylsfm odometry", out / "network" / name / "trajectory.txt"),
+            ("cylsfm odometry --refine", out / "refine" / name / "trajectory.txt"),
+        ):
+            if method in rows and file.is_file():
+                _, c2w = read_tum(file)
+                rows[method].update(_trajectory_where(DATA / name, np.arange(len(c2w)), c2w))
     return table
 
 
@@ -236,6 +271,23 @@ def show(table: dict) -> None:
             )
 
 
+def show_where(table: dict) -> None:
+    print(
+        "\n| ride | method | turning steps | step error on turns (m / deg) | "
+        "straight steps | step error on straight (m / deg) |"
+    )
+    print("|---|---|---|---|---|---|")
+    for ride, rows in table.items():
+        for method, r in rows.items():
+            if "turning_steps" not in r:
+                continue
+            cells = []
+            for part in ("turning", "straight"):
+                t, a = r[f"step_trans_{part}"], r[f"step_rot_deg_{part}"]
+                cells += [str(r[f"{part}_steps"]), "-" if t is None else f"{t:.4f} / {a:.3f}"]
+            print(f"| {ride} | {method} | {' | '.join(cells)} |")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("checkpoint")
@@ -254,6 +306,7 @@ def main() -> None:
         table = remeasure(args.out)
         (args.out / "table.json").write_text(json.dumps(table, indent=2) + "\n")
         show(table)
+        show_where(table)
         return
     table: dict = {}
     for name in args.rides or test_rides():

@@ -221,3 +221,60 @@ def test_sigterm_stops_odometry_like_ctrl_c_and_the_run_continues(ckpt, ride, tm
     whole = read_tum(tmp_path / "whole" / "trajectory.txt")
     cut = read_tum(tmp_path / "cut" / "trajectory.txt")
     np.testing.assert_allclose(cut[1], whole[1], atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def round_ride(tmp_path_factory) -> Path:
+    """A ride once round a circle in the room (40 frames, 128x32), ending where it started."""
+    cam = CylindricalCamera.full(128, 32)
+    seq = tmp_path_factory.mktemp("data") / "round"
+    writer = SequenceWriter(seq, cam)
+    poses = []
+    for i in range(40):
+        a = 2 * math.pi * i / 39
+        c2w = make_pose(-1.0 + 1.5 * math.cos(a), 0.1, -1.0 + 1.5 * math.sin(a), yaw_deg=-math.degrees(a))
+        image, depth = render_room(cam, c2w, supersample=2)
+        writer.add_frame(
+            (image[0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy(), depth[0, 0].numpy()
+        )
+        poses.append(c2w.numpy())
+    return writer.finish(np.stack(poses), timestamps=np.arange(40) * 0.2)
+
+
+def test_a_ride_that_comes_back_closes_its_loop(ckpt, round_ride, tmp_path):
+    from cylsfm.odometry.loops import LoopSettings
+
+    settings = OdometrySettings(
+        refine=True, depth_from=round_ride.parent, progress=False, device="cpu", loops=True,
+        loop=LoopSettings(min_gap=15, window=2, span=10),
+    )  # fmt: skip
+    out = tmp_path / "out"
+    result = cylsfm.odometry(round_ride, ckpt, out, settings)
+    assert result.loops is not None and result.loops["accepted"] >= 2
+    accepted = [p for p in result.loops["pairs"] if p["accepted"]]
+    assert all(p["j"] - p["i"] >= 15 for p in accepted)
+    from cylsfm.data.io import read_tum
+    from cylsfm.evaluate.motion import yaw_angle
+
+    _, gt = read_tum(round_ride / "poses.txt")
+    for p in accepted:  # every accepted loop measures the true turn between its frames
+        true = math.degrees(yaw_angle(np.linalg.inv(gt[p["j"]]) @ gt[p["i"]]))
+        assert abs((p["yaw_deg"] - true + 180) % 360 - 180) < 1.0
+    assert any(p["i"] < 4 and p["j"] > 35 for p in accepted)  # the end seen again at the start
+    closed, refined = result.metrics["loops closed"], result.metrics["refined"]
+    assert closed["ape_rmse"] <= refined["ape_rmse"] * 1.01
+    gap = np.linalg.norm(result.c2w[-1, :3, 3] - result.c2w[0, :3, 3])
+    own = np.loadtxt(out / "trajectory_network.txt")  # (the network's: loops close the refined one)
+    assert gap < 0.05 and own.shape[0] == 40
+    header = (out / "trajectory.txt").read_text()
+    assert "loops:" in header and "accepted" in header
+    summary = __import__("json").loads((out / "odometry.json").read_text())
+    assert summary["loops"]["accepted"] == result.loops["accepted"]
+    # continued from the state: the loops are not looked for again, the same trajectory comes out
+    again = cylsfm.odometry(round_ride, ckpt, out, settings)
+    np.testing.assert_allclose(again.c2w, result.c2w)
+    assert "loops" not in again.timings
+    # without loops: no pairs, the refined trajectory
+    plain = cylsfm.odometry(round_ride, ckpt, tmp_path / "plain", OdometrySettings(
+        refine=True, depth_from=round_ride.parent, progress=False, device="cpu", loops=False))  # fmt: skip
+    assert plain.loops is None and "loops closed" not in plain.metrics

@@ -59,6 +59,18 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
         "the direction of travel. Default: a dataset sequence's own mask.png",
     )
     m.add_argument("--no-mask", action="store_true", help="use every pixel, even where mask.png says not to")
+    lp = p.add_mutually_exclusive_group()
+    lp.add_argument(
+        "--loops",
+        dest="loops",
+        action="store_const",
+        const=True,
+        default="auto",
+        help="close loops: find the places the ride comes back to (a heading-invariant descriptor, verified "
+        "by direct alignment both ways) and optimise the whole ride with them (a pose graph that also "
+        "corrects the scale's drift). Default: on for rides of at least 200 frames with a full-panorama model",
+    )
+    lp.add_argument("--no-loops", dest="loops", action="store_const", const=False, help="never close loops")
     p.add_argument("--depth", action="store_true", help="also write every frame's depth: OUT/depth/FRAME.npy")
     p.add_argument("--fps", type=float, help="take about N frames a second from a video (default: all)")
     p.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
@@ -120,12 +132,17 @@ def run_odometry(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         pose_iterations=args.pose_iterations,
         mask=False if args.no_mask else args.mask,
+        loops=args.loops,
     )
     result = odometry(args.input, args.checkpoint, args.out, settings)
     n = len(result.c2w)
     print(
         f"wrote {result.trajectory} ({n} frames, {result.unit}) in {result.seconds:.1f} s ({n / max(result.seconds, 1e-9):.1f} frames/s)"
     )
+    if result.loops is not None:
+        print(
+            f"loops: {result.loops['verified']} candidate pairs verified, {result.loops['accepted']} accepted"
+        )
     if result.metrics:
         print("against the ground truth (APE: Sim(3)-aligned; metres, degrees):")
         _print_metrics(result.metrics)

@@ -62,6 +62,28 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
         "with no ground-truth depth, and each sequence's mask.png leaving it out",
     )
     p.add_argument(
+        "--route",
+        choices=["random", "block", "eight", "back", "stairs"],
+        default="random",
+        help="the camera's route: a random walk with turns at intersections (default); rides that come back: "
+        "once around a block or a figure eight around two (both end where they start), out along streets "
+        "and the same streets back in the opposite direction; or a staircase of alternating turns that never "
+        "passes a place twice. The routes other than random are fitted to the town: give about as many "
+        "frames as the route is long in metres (a message says how many when no route fits)",
+    )
+    p.add_argument(
+        "--town-frames",
+        type=int,
+        default=0,
+        help="build each town as for rides of N frames (default: --frames): with --frames 150 the benchmark's "
+        "towns, so that rides of other routes and lengths go through the same towns",
+    )
+    p.add_argument(
+        "--alike",
+        action="store_true",
+        help="every building of a town in one colour and one facade style: streets that look alike",
+    )
+    p.add_argument(
         "--overwrite", action="store_true", help="replace sequences (and the split) that already exist in OUT"
     )
 
@@ -85,7 +107,9 @@ def run_synth(args: argparse.Namespace) -> int:
         moving_objects=args.moving_objects,
         projection=args.projection,
         workers=args.workers,
-        config=SynthConfig(supersample=args.supersample),
+        config=SynthConfig(
+            supersample=args.supersample, route=args.route, town_frames=args.town_frames, alike=args.alike
+        ),
         first_index=args.first_index,
         overwrite=args.overwrite,
         splits=args.split is not None,

@@ -18,10 +18,12 @@ def plot_trajectories(
     curves: dict[str, np.ndarray | None],
     title: str = "",
     unit: str = "m",
+    links: np.ndarray | None = None,
 ) -> None:
     """Save a top view (x right, z up the page; the world's y points down) of aligned trajectories
     ``{name: [N,3]}`` against the ground truth ``[N,3]`` (``None``: none) as a PNG (matplotlib's Agg canvas,
-    written atomically; the global matplotlib backend is left alone); ``unit`` labels the axes."""
+    written atomically; the global matplotlib backend is left alone); ``unit`` labels the axes; ``links``
+    ``[K,2,3]``: pairs of points joined by thin lines (loop constraints)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -38,6 +40,10 @@ def plot_trajectories(
             continue
         xyz = np.asarray(xyz)
         ax.plot(xyz[:, 0], xyz[:, 2], styles[n % len(styles)], lw=1.5, label=name)
+    if links is not None and len(links):
+        for n, (a, b) in enumerate(np.asarray(links)):
+            ax.plot([a[0], b[0]], [a[2], b[2]], "-", color="tab:red", lw=0.7, alpha=0.6,
+                    label="loop constraints" if n == 0 else None)  # fmt: skip
     ax.set_xlabel(f"x ({unit})")
     ax.set_ylabel(f"z ({unit})")
     ax.set_aspect("equal", adjustable="datalim")

@@ -6,6 +6,7 @@ Nothing here knows about networks or datasets.
 from .cameras import Camera, CameraError, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
 from .compass import column_shift, compass_yaw
 from .jacobian import projection_jacobian
+from .place import place_descriptor, place_distance
 from .pose import (
     axis_angle_to_matrix,
     compose,
@@ -55,6 +56,8 @@ __all__ = [
     "matrix_to_axis_angle",
     "matrix_to_quaternion",
     "pad_for_window",
+    "place_descriptor",
+    "place_distance",
     "pose_vec_to_mat",
     "projection_jacobian",
     "quaternion_to_matrix",

@@ -43,7 +43,7 @@ from . import (
     transform_points,
 )
 
-__all__ = ["AlignConfig", "AlignResult", "align", "photometric_costs", "resize_depth"]
+__all__ = ["AlignConfig", "AlignResult", "align", "photometric_costs", "photometric_inliers", "resize_depth"]
 
 #: Grey from RGB (ITU-R BT.601 luma weights).
 _LUMA = (0.299, 0.587, 0.114)
@@ -404,3 +404,36 @@ def photometric_costs(
     lins = [_linearize(lv, poses[:, i].double()) for i in range(poses.shape[1])]
     k = torch.stack([_scale(lin) for lin in lins]).min(0).values
     return torch.stack([_cost(lin, k) for lin in lins], 1)
+
+
+def photometric_inliers(
+    target: Tensor,
+    source: Tensor,
+    depth: Tensor,
+    poses: Tensor,
+    camera: Camera,
+    threshold: float = 0.25,
+    min_gradient: float = 0.5,
+    wrap: bool | None = None,
+    mask: Tensor | None = None,
+) -> Tensor:
+    """The fraction ``[B]`` of the target's textured pixels with a depth whose residual at ``poses`` is
+    within ``threshold`` (in standard deviations of the grey images, normalised as in :func:`align`): a
+    pixel whose point leaves the source's view, or lands on the mask there, counts as an outlier.
+    Textured: the target's grey gradient (the larger of the two central differences) is at least
+    ``min_gradient`` standard deviations; flat pixels (sky, asphalt, plaster) fit almost any pose and
+    would make two different places look alike. An absolute measure of fit, unlike :func:`align`'s cost
+    (scaled by its own residuals): how much of the target's texture a rigid motion with this depth explains.
+
+    Args:
+        target, source: images ``[B,3,H,W]``; depth: the targets' depth ``[B,1,H,W]``.
+        poses: ``T_{t->s}`` ``[B,4,4]``; camera, wrap, mask: as for :func:`align`.
+    """
+    check_shape(poses, f"{target.shape[0]},4,4", "poses")
+    wrap = camera.wraps if wrap is None else wrap
+    lv = _pyramid(target, source, depth, camera, wrap, 1, _mask(mask, target))[0]
+    lin = _linearize(lv, poses.double())
+    grads = _gradients(lv.target, wrap)[:, 1:3].abs().amax(1, keepdim=True)  # [B,1,H,W]
+    textured = lv.has_depth & (grads >= min_gradient)
+    good = (lin.valid & textured & (lin.r.abs() <= threshold)).flatten(1).sum(1)
+    return good.double() / textured.flatten(1).sum(1).clamp(min=1).double()

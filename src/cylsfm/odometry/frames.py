@@ -63,6 +63,25 @@ class Ride:
             if n % self.stride == 0:
                 yield n // self.stride, stem, int(stem) / rate, rgb
 
+    def pick(self, indices: set[int]) -> Iterator[tuple[int, np.ndarray]]:
+        """The frames ``indices`` (as counted by :meth:`read`) in order: ``(index, uint8 [H,W,3] RGB)``;
+        image files are read only for those, a video is decoded up to the last of them."""
+        if not indices:
+            return
+        last = max(indices)
+        if self._images is not None:
+            for i, path in enumerate(self._images[:: self.stride]):
+                if i in indices:
+                    yield i, load_image(path)
+                if i >= last:
+                    return
+            return
+        for i, _, _, rgb in self.read():
+            if i in indices and rgb is not None:
+                yield i, rgb
+            if i >= last:
+                return
+
     def _times(self) -> np.ndarray:
         """Times of the kept image frames: ``poses.txt``'s timestamps when there are, else the frame index."""
         assert self._images is not None

@@ -70,9 +70,40 @@ def ride_metrics(
     return out, curves
 
 
-def top_view(path: Path, c2w: np.ndarray, unit: str, gt: np.ndarray | None, curves: dict[str, Any]) -> None:
-    """The ride seen from above: the aligned curves against the ground truth, or the trajectory alone."""
+def top_view(
+    path: Path,
+    c2w: np.ndarray,
+    unit: str,
+    gt: np.ndarray | None,
+    curves: dict[str, Any],
+    links: list[tuple[int, int]] | None = None,
+) -> None:
+    """The ride seen from above: the aligned curves against the ground truth, or the trajectory alone;
+    ``links``: frame pairs (the accepted loops) drawn between the first curve's positions."""
     if gt is None:
-        plot_trajectories(path, None, {"trajectory": c2w[:, :3, 3]}, title="trajectory (top view)", unit=unit)
+        xyz = c2w[:, :3, 3]
+        plot_trajectories(
+            path,
+            None,
+            {"trajectory": xyz},
+            title="trajectory (top view)",
+            unit=unit,
+            links=_links(xyz, links),
+        )
         return
-    plot_trajectories(path, gt[:, :3, 3], curves, title="Sim(3)-aligned to the ground truth (top view)")
+    first = next((c for c in curves.values() if c is not None), None)
+    plot_trajectories(
+        path,
+        gt[:, :3, 3],
+        curves,
+        title="Sim(3)-aligned to the ground truth (top view)",
+        links=_links(first, links),
+    )
+
+
+def _links(xyz: np.ndarray | None, pairs: list[tuple[int, int]] | None) -> np.ndarray | None:
+    """``[K,2,3]`` the positions of the frame pairs on a curve ``[N,3]`` (``None``: none)."""
+    if xyz is None or not pairs:
+        return None
+    xyz = np.asarray(xyz)
+    return np.stack([xyz[[i, j]] for i, j in pairs])

@@ -22,7 +22,7 @@ from ..data.format import load_depth, save_depth
 from ..data.io import write_tum
 from ..errors import CylsfmError, InputError
 from ..evaluate.pose_metrics import chain_poses
-from ..geometry import Camera, load_camera
+from ..geometry import Camera, invert, load_camera
 from ..geometry.align import resize_depth
 from ..geometry.ground import metric_scale
 from ..model import Predictor
@@ -30,8 +30,10 @@ from ..model.checkpoint import checkpoint_id
 from ..model.plan import model_vfov_h, network_images, network_mask, plan_input
 from ..runtime import fingerprint, progress_bar
 from .frames import Ride, depth_files, open_ride
+from .loops import Loop, check_loops, loop_candidates, loop_rows, loops_from_rows, verify_loops
+from .posegraph import close_loops
 from .report import ride_metrics, top_view
-from .settings import OdometrySettings
+from .settings import LOOP_MIN_FRAMES, OdometrySettings
 from .state import STATE_FILE, State
 from .track import MOUNT_AGREEMENT, Tracker, TrackOptions, keyframe_steps, network_size
 
@@ -53,6 +55,7 @@ class OdometryResult:
         unit: ``"network units"`` or ``"metres"``; ``metres_per_unit`` the scale applied (``None``: none).
         metrics: measures against the ground truth (``None`` without it), as in ``OUT/metrics.json``.
         timings: seconds per part of the work; ``seconds`` in all.
+        loops: what the loop closure found (as ``odometry.json``'s ``loops``; ``None``: not looked for).
     """
 
     trajectory: Path
@@ -64,6 +67,7 @@ class OdometryResult:
     metrics: dict[str, Any] | None
     timings: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
+    loops: dict[str, Any] | None = None
 
 
 def odometry(
@@ -102,6 +106,8 @@ def odometry(
         "pose_iterations": predictor.pose_iterations,
         "ground_fit": opt.camera_height is not None,  # the depth of every frame is needed for it
         "mask": _file_id(mask_file),
+        "loops": opt.loops,
+        "loop": asdict(opt.loop) if opt.loops else None,
     }
     run_settings = _settings(ride, checkpoint, plan, opt, fixed)
     (dest := Path(out)).mkdir(parents=True, exist_ok=True)
@@ -123,15 +129,21 @@ def odometry(
             keyframe_every=opt.keyframe_every,
             need_depth=opt.camera_height is not None,
             find_mount=opt.find_mount and turnable,
+            places=bool(opt.loops),
         ),
         depth_of=depth_of,
         on_depth=writer,
         mask=mask,
     )
+    if opt.loops is True and not tracker.places:
+        raise InputError(f"{ride.path}: loops need a model that reads full panoramas (this one reads a crop)")
     if not state.finished:
         _track(ride, plan, predictor, tracker, state, dest, opt.progress)
+    loops = None
+    if tracker.places and (opt.loops is True or state.next_frame >= LOOP_MIN_FRAMES):
+        loops = _loops(ride, plan, predictor, tracker, state, opt, dest)
     masked = None if mask is None else {"file": str(mask_file), "occluded_fraction": float(1 - mask.mean())}
-    return _finish(ride, state, dest, tracker, opt, depths, started, masked)
+    return _finish(ride, state, dest, tracker, opt, depths, started, masked, loops)
 
 
 def ride_mask(ride: Ride, mask: Any) -> Path | None:
@@ -291,6 +303,46 @@ def _track(
     state.save(dest / STATE_FILE)
 
 
+def _loops(
+    ride: Ride,
+    plan: Any,
+    predictor: Predictor,
+    tracker: Tracker,
+    state: State,
+    opt: OdometrySettings,
+    dest: Path,
+) -> list[Loop]:
+    """The ride's loops, found and verified once (then kept in the state)."""
+    if state.loops is not None:
+        return loops_from_rows(state.loops, state.loop_why)
+    t = time.perf_counter()
+    steps = keyframe_steps(np.stack(state.refined), tracker.every) if opt.refine else np.stack(state.net)
+    c2w = chain_poses(steps)
+    reach = np.asarray(state.reach, dtype=np.float64)
+    known = np.isfinite(reach)
+    fallback = 10 * float(np.median(np.linalg.norm(steps[:, :3, 3], axis=1)))  # no depth: ~ten steps
+    reach = np.where(known, reach, float(np.median(reach[known])) if known.any() else fallback)
+    pairs = loop_candidates(torch.from_numpy(np.stack(state.places)), opt.loop, c2w, reach)
+    wanted = {i for i, _, _ in pairs} | {j for _, j, _ in pairs}
+    images: dict[int, torch.Tensor] = {}
+    for i, rgb in ride.pick(wanted):
+        x = network_size(network_images([rgb], plan, predictor.device), predictor.size)[0]
+        images[i] = x.cpu()
+    missing = wanted - images.keys()
+    if missing:
+        raise CylsfmError(f"{ride.path}: frames {sorted(missing)[:5]} could not be read again for the loops")
+    depth = tracker.depths_of(sorted(wanted), images)
+    views = {i: tracker.view_of(x) for i, x in images.items()}
+    found = verify_loops(
+        pairs, views.__getitem__, depth.__getitem__, tracker.view, opt.loop, mask=tracker.view_mask()
+    )
+    found = check_loops(found, c2w, reach, opt.loop)
+    state.loops, state.loop_why = loop_rows(found), [lp.why for lp in found]
+    state.save(dest / STATE_FILE)
+    tracker.times.add("loops", t)
+    return found
+
+
 def _finish(
     ride: Ride,
     state: State,
@@ -300,12 +352,21 @@ def _finish(
     depths: list[Path] | None,
     started: float,
     masked: dict[str, Any] | None,
+    loops: list[Loop] | None,
 ) -> OdometryResult:
-    """Scale, chain, and write the trajectory, the plot, the measures and the summary."""
+    """Close the loops, scale, chain, and write the trajectory, the plot, the measures and the summary."""
     refine = opt.refine
     refined = keyframe_steps(np.stack(state.refined), tracker.every) if refine else None
+    odometry_steps = refined if refined is not None else np.stack(state.net)
+    closed = None
+    accepted = [lp for lp in loops or [] if lp.accepted]
+    if accepted:
+        t = time.perf_counter()
+        closed_c2w, _ = close_loops(odometry_steps, accepted)
+        closed = np.stack([invert(closed_c2w[j + 1]) @ closed_c2w[j] for j in range(len(closed_c2w) - 1)])
+        tracker.times.add("pose graph", t)
     steps, unit, scale, comments = _in_unit(
-        refined if refined is not None else np.stack(state.net), state, opt, depths
+        closed if closed is not None else odometry_steps, state, opt, depths
     )
     if scale is not None and opt.save_depth_maps:
         _scaled_depth(dest, state, scale)
@@ -316,6 +377,12 @@ def _finish(
         comments.append(f"mask: {masked['file']} ({masked['occluded_fraction']:.1%} of the pixels left out)")
     if (mount := _mount_summary(state)) is not None:
         comments.append(f"direction of travel in the panorama: {mount['yaw_deg']:.1f} deg ({mount['how']})")
+    loop_summary = _loop_summary(loops)
+    if loop_summary is not None:
+        comments.append(
+            f"loops: {loop_summary['verified']} candidate pairs verified, {loop_summary['accepted']} accepted"
+            + (" (closed by a pose graph)" if accepted else "")
+        )
     c2w = chain_poses(steps)
     times = np.asarray(state.times)
     write_tum(dest / "trajectory.txt", times, c2w, comments)
@@ -326,13 +393,14 @@ def _finish(
             chain_poses(np.stack(state.net)),
             ["the pose network alone"],
         )
-    measured = _measure(ride, state, refined)
+    measured = _measure(ride, state, refined, closed)
     top_view(
         dest / "trajectory.png",
         c2w,
         "m" if scale or depths is not None else "network units",
         measured.truth if measured else None,
         measured.curves if measured else {},
+        links=[(lp.i, lp.j) for lp in accepted],
     )
     seconds = time.perf_counter() - started
     summary = {
@@ -347,6 +415,7 @@ def _finish(
         "refinement": _refine_stats(state) if refine else None,
         "direction_of_travel": _mount_summary(state),
         "mask": masked,
+        "loops": loop_summary,
     }
     atomic_write_text(dest / "odometry.json", json.dumps(summary, indent=2) + "\n")
     if measured:
@@ -361,6 +430,7 @@ def _finish(
         metrics=measured.metrics if measured else None,
         timings=tracker.times.parts,
         seconds=seconds,
+        loops=loop_summary,
     )
 
 
@@ -401,6 +471,28 @@ def _mount_summary(state: State) -> dict[str, Any] | None:
     }
 
 
+def _loop_summary(loops: list[Loop] | None) -> dict[str, Any] | None:
+    """What the loop closure found (``None``: not looked for)."""
+    if loops is None:
+        return None
+    return {
+        "verified": len(loops),
+        "accepted": sum(lp.accepted for lp in loops),
+        "pairs": [
+            {
+                "i": lp.i,
+                "j": lp.j,
+                "accepted": lp.accepted,
+                "why": lp.why,
+                "inliers": lp.inliers,
+                "yaw_deg": math.degrees(math.atan2(lp.pose[0, 2], lp.pose[2, 2])),
+                "scale_ratio": lp.ratio,
+            }
+            for lp in loops
+        ],
+    }
+
+
 def _refine_stats(state: State) -> dict[str, float]:
     cost = np.asarray(state.cost)
     return {
@@ -421,7 +513,9 @@ class _Measured:
     truth: np.ndarray
 
 
-def _measure(ride: Ride, state: State, refined: np.ndarray | None) -> _Measured | None:
+def _measure(
+    ride: Ride, state: State, refined: np.ndarray | None, closed: np.ndarray | None
+) -> _Measured | None:
     truth = ride.ground_truth()
     if truth is None:
         return None
@@ -429,6 +523,7 @@ def _measure(ride: Ride, state: State, refined: np.ndarray | None) -> _Measured 
     if len(gt) != len(state.stems):
         return None
     steps = {
+        "loops closed": closed,
         "refined": refined,
         "network": np.stack(state.net),
         "compass": np.stack(state.compass),

@@ -9,8 +9,12 @@ from dataclasses import dataclass, field
 from ..errors import InputError
 from ..geometry import Camera
 from ..geometry.align import AlignConfig
+from .loops import LoopSettings
 
-__all__ = ["OdometrySettings"]
+__all__ = ["LOOP_MIN_FRAMES", "OdometrySettings"]
+
+#: ``loops="auto"`` looks for loops in rides of at least this many frames.
+LOOP_MIN_FRAMES = 200
 
 
 @dataclass(frozen=True)
@@ -42,6 +46,10 @@ class OdometrySettings:
             camera, a helmet or a mount (black), in the frames' own geometry; the compass, the refinement
             and the search for the direction of travel leave the occluder out. ``None``: a dataset
             sequence's own ``mask.png`` when it has one; ``False``: every pixel.
+        loops: close loops (:mod:`~cylsfm.odometry.loops`, :mod:`~cylsfm.odometry.posegraph`): ``True``,
+            ``False``, or ``"auto"``: when the ride has at least :data:`LOOP_MIN_FRAMES` frames and the
+            model reads full panoramas.
+        loop: how loops are looked for and accepted.
 
     Raises:
         InputError: for a value out of range or ``depth_from`` without ``refine``.
@@ -62,6 +70,8 @@ class OdometrySettings:
     progress: bool = True
     pose_iterations: int | None = None
     mask: str | os.PathLike[str] | bool | None = None
+    loops: bool | str = "auto"
+    loop: LoopSettings = field(default_factory=LoopSettings)
 
     def __post_init__(self) -> None:
         if self.keyframe_every < 1:
@@ -76,6 +86,8 @@ class OdometrySettings:
             raise InputError(f"camera_height must be a positive number of metres, got {height}")
         if self.mask is True:
             raise InputError("mask: give the mask image's path, None (a sequence's own) or False (none)")
+        if not (self.loops in (True, False) or self.loops == "auto"):
+            raise InputError(f"loops must be True, False or 'auto', got {self.loops!r}")
         if self.depth_from is not None and not self.refine:
             raise InputError("depth_from gives the refinement its depth: it needs refine=True (--refine)")
 

@@ -18,10 +18,12 @@ import numpy as np
 
 from ..atomic import atomic_write_bytes
 
-__all__ = ["STATE_FILE", "State"]
+__all__ = ["LOOP_COLUMNS", "STATE_FILE", "State"]
 
 #: The state's file name in the output directory.
 STATE_FILE = ".odometry-state.npz"
+#: Numbers a verified loop's row in the state holds (:func:`cylsfm.odometry.loops.loop_rows`).
+LOOP_COLUMNS = 24
 
 
 def _stack(rows: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
@@ -49,6 +51,13 @@ class State:
     tail_depths: list[np.ndarray] = field(default_factory=list)
     finished: bool = False
     rescaled: int = 0  # 1: the depth files in metres are all written
+    #: each frame's place descriptor (:func:`~cylsfm.geometry.place.place_descriptor`) and median depth
+    places: list[np.ndarray] = field(default_factory=list)
+    reach: list[float] = field(default_factory=list)
+    #: the loops verified at the end (:data:`LOOP_COLUMNS` numbers a row) and why each was not accepted; ``None``:
+    #: not looked for yet
+    loops: np.ndarray | None = None
+    loop_why: list[str] = field(default_factory=list)
     #: the direction of travel in the panorama (radians; nan: not known yet) and how it was found:
     #: ``(agreement, pairs)`` of :func:`~cylsfm.odometry.mount.mount_yaw` (nan, 0: given or none)
     mount: tuple[float, float, int] = (float("nan"), float("nan"), 0)
@@ -75,6 +84,11 @@ class State:
             "finished": np.array(self.finished),
             "rescaled": np.array(self.rescaled),
             "mount": np.array(self.mount, dtype=np.float64),
+            "places": _stack(self.places, (0,)).astype(np.float32),
+            "reach": np.array(self.reach, dtype=np.float64),
+            "loops": np.zeros((0, LOOP_COLUMNS)) if self.loops is None else self.loops,
+            "loops_done": np.array(self.loops is not None),
+            "loop_why": np.array(self.loop_why, dtype=str),
         }
         buf = io.BytesIO()
         np.savez(buf, **arrays)
@@ -100,6 +114,12 @@ class State:
                 state.rescaled = int(z["rescaled"])
                 yaw, agreement, pairs = (float(v) for v in z["mount"])
                 state.mount = (yaw, agreement, int(pairs))
+                state.places = list(z["places"])
+                state.reach = [float(r) for r in z["reach"]]
+                state.loops = np.asarray(z["loops"], dtype=np.float64) if bool(z["loops_done"]) else None
+                state.loop_why = [str(w) for w in z["loop_why"]]
+                if state.loops is not None and state.loops.shape[1:] != (LOOP_COLUMNS,):
+                    return None
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             return None  # unreadable (empty, cut off, not an archive) or from another version: start over
         return state

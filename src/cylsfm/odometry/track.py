@@ -23,6 +23,7 @@ from ..evaluate.pose_metrics import step_from_window, window_centre
 from ..geometry import Camera, compass_yaw, invert, yaw_matrix
 from ..geometry.align import AlignConfig, align
 from ..geometry.ground import ground_height
+from ..geometry.place import place_descriptor
 from ..model import Predictor
 from .mount import mount_yaw
 from .state import State
@@ -61,6 +62,8 @@ class TrackOptions:
         find_mount: find the direction of travel in the panorama (:func:`~cylsfm.odometry.mount.mount_yaw`)
             from the first chunk, unless the state knows it; the pose network then reads every window turned
             so that the camera faces its motion (full panoramas only).
+        places: record every frame's place descriptor and median depth (for loop closure; full
+            panoramas only).
     """
 
     refine: bool = False
@@ -69,6 +72,7 @@ class TrackOptions:
     keyframe_every: int = 1
     need_depth: bool = True
     find_mount: bool = False
+    places: bool = False
 
 
 class Tracker:
@@ -111,6 +115,7 @@ class Tracker:
         self.depth_of = depth_of
         self.on_depth = on_depth
         self.find_mount = options.find_mount and self.view.wraps
+        self.places = options.places and self.view.wraps
         self.k = (int(predictor.config.data.seq_length) - 1) // 2
         w, h = predictor.size
         if mask is not None and tuple(mask.shape) != (1, 1, h, w):
@@ -138,6 +143,14 @@ class Tracker:
         else:  # the network's poses alone need no depth
             depth = torch.zeros(len(indices), 1, 1, 1)
             self.state.heights += [float("nan")] * len(indices)
+        if self.places:
+            self.state.places += list(place_descriptor(self._view(images).cpu(), self._view_mask()).numpy())
+            if self.need_depth:
+                d = torch.where(depth > 0, depth, torch.full_like(depth, float("nan"))).flatten(1)
+                self.state.reach += torch.nanmedian(d.cpu().float(), dim=1).values.tolist()
+            else:
+                self.state.reach += [float("nan")] * len(indices)
+            t = self.times.add("place descriptors", t)
         if self.find_mount and not math.isfinite(self.state.mount[0]):
             self._mount(indices, images, depth if self.need_depth else None)
             t = self.times.add("direction of travel", t)
@@ -206,6 +219,27 @@ class Tracker:
 
     def _view(self, x: Tensor) -> Tensor:
         return x if self.window is None else x[..., self.window[0] : self.window[1]]
+
+    def _view_mask(self) -> Tensor | None:
+        return None if self.mask is None else self._view(self.mask)
+
+    def view_of(self, images: Tensor) -> Tensor:
+        """Network-size images ``[...,H,W]`` -> the part the networks see (all of a full panorama)."""
+        return self._view(images)
+
+    def view_mask(self) -> Tensor | None:
+        """The mask ``[1,1,h,w]`` of what the networks see (``None``: none)."""
+        return self._view_mask()
+
+    def depths_of(self, indices: list[int], images: dict[int, Tensor]) -> dict[int, Tensor]:
+        """The depth ``[1,h,w]`` of frames ``indices`` from their network-size images (``[3,H,W]``; the
+        ground truth's when the tracker reads it), in batches."""
+        out: dict[int, Tensor] = {}
+        for n in range(0, len(indices), self.batch):
+            chunk = indices[n : n + self.batch]
+            depth = self._depth(chunk, torch.stack([images[i] for i in chunk]).to(self.p.device))
+            out.update(zip(chunk, self._view(depth).cpu(), strict=True))
+        return out
 
     def _steps(self, ready: Callable[[int], bool], m: int) -> None:
         """Every step ``j`` not yet done for which ``ready(j)``, on a chain of ``m`` frames (so far)."""

@@ -26,3 +26,14 @@ class SynthConfig:
     building_height: tuple[float, float] = (5.0, 40.0)
     texture_filter: float = 1.0  # width, in pixels, of the box filter applied to textures (optical blur)
     supersample: int = 1  # 1: quincunx (5 samples, 2 rays a pixel); n >= 2: n x n rays a pixel
+    #: the camera's route: "random" (a random walk: turns at intersections), "block" (once around a
+    #: block, ending where it started), "eight" (a figure eight around two blocks: the street between them
+    #: twice in the same direction, ending where it started), "back" (along streets, around a block and
+    #: the same streets back in the opposite direction), "stairs" (alternating left and right turns: never
+    #: a place twice). Routes other than "random" fit the ride's length to the town's streets.
+    route: str = "random"
+    #: build the town as for a ride of this many frames (0: the ride's own): the same seed then gives the
+    #: same town to rides of other lengths and routes
+    town_frames: int = 0
+    #: every building of the town in one colour and one facade style (streets that look alike)
+    alike: bool = False

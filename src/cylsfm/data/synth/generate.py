@@ -19,6 +19,7 @@ from ..splits import make_splits, split_path
 from .config import SynthConfig
 from .occluder import OCCLUDERS, occluder_mask, occluder_texture
 from .render import make_camera, render_frame
+from .ride import ROUTES
 from .town import StreetScene
 
 __all__ = ["generate_dataset"]
@@ -80,8 +81,9 @@ def generate_dataset(
     Raises:
         InputError: an argument out of range (``sequences``, ``frames``, ``width``, ``height`` below 1,
             ``frames`` below 3, a negative ``first_index`` or ``workers``, ``config.supersample`` below 1,
-            an unknown ``projection`` or ``occluder``, invalid ``split_fractions``), or a sequence or split that already
-            exists in ``out`` without ``overwrite``. Nothing is written then.
+            an unknown ``projection``, ``occluder`` or ``config.route``, invalid ``split_fractions``, a
+            route the town has none of about the ride's length), or a sequence or split that already exists
+            in ``out`` without ``overwrite``. Nothing is written then (of the sequence that fails).
     """
     out = Path(out)
     base = config or SynthConfig()
@@ -132,6 +134,10 @@ def _check_args(
         raise InputError(f"workers must be at least 1 (or 0 for one per CPU), got {workers}")
     if config.supersample < 1:
         raise InputError(f"supersample must be at least 1, got {config.supersample}")
+    if config.route not in ROUTES:
+        raise InputError(f"route must be one of {', '.join(ROUTES)}, got {config.route!r}")
+    if config.town_frames < 0:
+        raise InputError(f"town_frames must be at least 0, got {config.town_frames}")
     if splits:
         fr = [float(f) for f in split_fractions]
         if len(fr) != 3 or any(f < 0 or not math.isfinite(f) for f in fr) or abs(sum(fr) - 1) > 1e-6:

@@ -45,7 +45,8 @@ class StreetScene:
         cfg = config or SynthConfig()
         rng = np.random.default_rng(seed)
         corridor = cfg.road_half_width + cfg.sidewalk_width
-        n_blocks = int(np.clip(math.ceil(math.sqrt(cfg.frames * cfg.speed) / 3.5) + 3, 4, 14))
+        town = cfg.town_frames or cfg.frames
+        n_blocks = int(np.clip(math.ceil(math.sqrt(town * cfg.speed) / 3.5) + 3, 4, 14))
         gaps = rng.uniform(*cfg.block_size, size=(2, n_blocks)) + 2 * corridor
         xs = np.concatenate(([0.0], np.cumsum(gaps[0])))
         zs = np.concatenate(([0.0], np.cumsum(gaps[1])))
@@ -69,6 +70,9 @@ class StreetScene:
                 else:
                     _block(rng, rows, cfg, bx0, bx1, bz0, bz1)
         _street_furniture(rng, rows, cfg, xs, zs)
+        if cfg.alike:  # one colour and one facade for every building (drawn after: the layout is kept)
+            colour, facade = _building_colour(rng), _facade(rng)
+            rows = [(*r[:5], colour, facade) if r[4] == FACADE else r for r in rows]
         static = prisms_from_rows(rows)
         scene = cls(seed, cfg, xs, zs, static, tiles=tiles, sky_tile=sky_tile, park_blocks=park_blocks)
         scene.c2w = route_poses(rng, cfg, xs, zs)

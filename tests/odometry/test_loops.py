@@ -1,0 +1,167 @@
+"""Loop closure's parts: candidates from the place descriptors, verification by direct alignment (a revisit
+at another heading accepted with its yaw, a planted false loop rejected), the checks against the odometry,
+and the pose graph (a known loop corrects an injected drift; a wrong loop among right ones is dropped)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cylsfm.data.format import load_depth, load_image
+from cylsfm.data.synth import generate_dataset
+from cylsfm.evaluate.pose_metrics import chain_poses, trajectory_metrics
+from cylsfm.geometry import invert, load_camera, place_descriptor, roll_columns, rotation_y
+from cylsfm.odometry.loops import (
+    Loop,
+    LoopSettings,
+    check_loops,
+    loop_candidates,
+    loop_rows,
+    loops_from_rows,
+    verify_loops,
+)
+from cylsfm.odometry.posegraph import close_loops
+
+
+@pytest.fixture(scope="module")
+def streets(tmp_path_factory):
+    """Two frames of each of two towns at 128x32 with their true depth: ``(images, depths, camera)``."""
+    root = tmp_path_factory.mktemp("streets")
+    seqs = generate_dataset(
+        root, sequences=2, frames=3, width=128, height=32, seed=4, workers=1, progress=False
+    )
+    images, depths = [], []
+    for seq in seqs:
+        for k in (0, 1):
+            images.append(
+                torch.from_numpy(load_image(seq / "images" / f"{k:06d}.png").copy()).permute(2, 0, 1) / 255
+            )
+            depths.append(torch.from_numpy(load_depth(seq / "depth" / f"{k:06d}.npy").copy())[None])
+    return torch.stack(images).float(), torch.stack(depths).float(), load_camera(seqs[0] / "camera.json")
+
+
+def test_a_revisit_at_another_heading_is_accepted_and_a_planted_false_loop_is_not(streets):
+    images, depths, cam = streets
+    shift = 40  # the camera turned: 112.5 degrees
+    frames = {0: images[0], 1: roll_columns(images[0], shift, axis=-1), 2: images[2]}
+    depth = {0: depths[0], 1: roll_columns(depths[0], shift, axis=-1), 2: depths[2]}
+    pairs = [(0, 1, 0.1), (0, 2, 0.1)]
+    revisit, false = verify_loops(pairs, frames.__getitem__, depth.__getitem__, cam, LoopSettings())
+    assert revisit.accepted and revisit.why == ""
+    yaw = math.degrees(math.atan2(revisit.pose[0, 2], revisit.pose[2, 2]))
+    assert yaw == pytest.approx(shift / 128 * 360, abs=0.5)
+    assert np.linalg.norm(revisit.pose[:3, 3]) < 0.05 * float(depths[0][depths[0] > 0].median())
+    assert revisit.ratio == pytest.approx(1.0, abs=0.01)
+    assert not false.accepted and false.why
+    assert false.inliers < revisit.inliers
+
+
+def test_a_revisit_a_metre_away_measures_the_step(streets):
+    images, depths, cam = streets
+    frames = {0: images[0], 1: roll_columns(images[1], 64, axis=-1)}  # the next frame, turned round
+    depth = {0: depths[0], 1: roll_columns(depths[1], 64, axis=-1)}
+    (loop,) = verify_loops([(0, 1, 0.1)], frames.__getitem__, depth.__getitem__, cam, LoopSettings())
+    assert loop.accepted
+    yaw = math.degrees(math.atan2(loop.pose[0, 2], loop.pose[2, 2]))
+    assert abs(abs(yaw) - 180) < 3
+    assert 0.3 < np.linalg.norm(loop.pose[:3, 3]) < 2.0  # metres (true depth): a step of about a metre
+
+
+def test_candidates_pair_the_frames_of_a_place_seen_again():
+    g = torch.Generator().manual_seed(0)
+    base = torch.nn.functional.interpolate(
+        torch.rand(80, 3, 4, 16, generator=g), size=(32, 128), mode="bilinear"
+    )
+    base[60:72] = roll_columns(base[0:12], 50, axis=-1)  # frames 60-71 revisit 0-11 at another heading
+    pairs = loop_candidates(place_descriptor(base), LoopSettings(min_gap=20, window=2, per_query=1))
+    top = pairs[:8]
+    assert all(j - i == 60 for i, j, _ in top), top
+    assert all(i + 60 == j for i, j, _ in pairs[:8])
+    assert loop_candidates(place_descriptor(base[:15]), LoopSettings(min_gap=20)) == []
+
+
+def _line(n: int) -> np.ndarray:
+    c2w = np.tile(np.eye(4), (n, 1, 1))
+    c2w[:, 2, 3] = np.arange(n, dtype=float)
+    return c2w
+
+
+def _loop(i: int, j: int, c2w: np.ndarray, offset: float = 0.0) -> Loop:
+    pose = invert(c2w[j]) @ c2w[i]
+    pose[2, 3] += offset
+    return Loop(i, j, pose, 1.0, 0.9, (0.0, 0.0), 0.1, True)
+
+
+def test_checks_drop_a_loop_beyond_the_drift_and_a_loop_that_no_other_supports():
+    c2w = _line(100)
+    reach = np.full(100, 10.0)
+    # agreeing loops 0->60, 1->61, 2->62 (the odometry's own relative poses), a lone one, and one 40 m off
+    loops = [_loop(k, 60 + k, c2w) for k in range(3)] + [_loop(30, 90, c2w), _loop(5, 95, c2w, offset=40.0)]
+    checked = check_loops(loops, c2w, reach, LoopSettings())
+    assert [lp.accepted for lp in checked] == [True, True, True, False, False]
+    assert checked[3].why == "no other loop agrees"
+    assert checked[4].why == "farther than the odometry's drift"
+    again = loops_from_rows(loop_rows(checked), [lp.why for lp in checked])
+    assert [(lp.i, lp.j, lp.accepted, lp.why) for lp in again] == [
+        (lp.i, lp.j, lp.accepted, lp.why) for lp in checked
+    ]
+    np.testing.assert_allclose(again[0].pose, checked[0].pose)
+
+
+def _circle(n: int = 100, radius: float = 16.0) -> np.ndarray:
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    for k, a in enumerate(np.linspace(0, 2 * np.pi, n + 1)[:-1]):
+        gt[k, :3, :3] = rotation_y(np.asarray(a, dtype=np.float64))
+        gt[k, 0, 3], gt[k, 2, 3] = radius * (1 - np.cos(a)), radius * np.sin(a)
+    return gt
+
+
+def _drifted(gt: np.ndarray) -> np.ndarray:
+    """The true steps with a growing scale (+0.1% a step) and a rotation bias (0.11 degrees a step)."""
+    steps = np.stack([invert(gt[j + 1]) @ gt[j] for j in range(len(gt) - 1)])
+    for j in range(len(steps)):
+        steps[j, :3, 3] *= 1 + 0.001 * j
+        steps[j, :3, :3] = rotation_y(np.asarray(0.002)) @ steps[j, :3, :3]
+    return steps
+
+
+def _ape(gt: np.ndarray, c2w: np.ndarray) -> float:
+    t = np.arange(len(gt)) * 0.2
+    return trajectory_metrics(gt, t, c2w, t)[0]["ape_rmse"]
+
+
+def test_the_pose_graph_with_a_known_loop_corrects_an_injected_drift():
+    gt = _circle()
+    steps = _drifted(gt)
+    n = len(gt)
+    ratio = 1 + 0.001 * (n - 2)  # the odometry's unit at the end against the start's
+    loop = Loop(0, n - 1, invert(gt[n - 1]) @ gt[0], ratio, 0.9, (0.0, 0.0), 0.1, True)
+    before = chain_poses(steps)
+    after, scales = close_loops(steps, [loop])
+    assert _ape(gt, after) < 0.2 * _ape(gt, before)
+    assert np.linalg.norm(after[-1, :3, 3] - after[0, :3, 3]) < 0.02 * 2 * np.pi * 16
+    assert scales[0] == pytest.approx(1.0) and scales[-1] == pytest.approx(1 / ratio, rel=0.1)
+    # no accepted loop: the steps chained
+    loop.accepted = False
+    same, ones = close_loops(steps, [loop])
+    np.testing.assert_allclose(same, before)
+    assert np.all(ones == 1)
+
+
+def test_a_wrong_loop_among_right_ones_is_dropped():
+    gt = _circle()
+    steps = _drifted(gt)
+    n = len(gt)
+    ratio = 1 + 0.001 * (n - 2)
+    right = [
+        Loop(k, n - 1 - k, invert(gt[n - 1 - k]) @ gt[k], ratio, 0.9, (0, 0), 0.1, True) for k in range(3)
+    ]
+    wrong_pose = invert(gt[70]) @ gt[20]
+    wrong_pose[:3, 3] = 0.0  # claims frames 20 and 70 (on opposite sides of the circle) are one place
+    wrong = Loop(20, 70, wrong_pose, 1.0, 0.9, (0, 0), 0.1, True)
+    good, _ = close_loops(steps, right)
+    with_wrong, _ = close_loops(steps, [*right, wrong])
+    assert _ape(gt, with_wrong) == pytest.approx(_ape(gt, good), rel=0.02)

@@ -22,16 +22,16 @@ from ..data.format import load_depth, save_depth
 from ..data.io import write_tum
 from ..errors import CylsfmError, InputError
 from ..evaluate.pose_metrics import chain_poses
-from ..geometry import Camera, invert, load_camera
+from ..geometry import Camera, load_camera
 from ..geometry.align import resize_depth
 from ..geometry.ground import metric_scale
 from ..model import Predictor
 from ..model.checkpoint import checkpoint_id
 from ..model.plan import model_vfov_h, network_images, network_mask, plan_input
 from ..runtime import fingerprint, progress_bar
+from .closure import closed_steps, loop_line, loop_summary_of, ride_loops
 from .frames import Ride, depth_files, open_ride
-from .loops import Loop, check_loops, loop_candidates, loop_rows, loops_from_rows, verify_loops
-from .posegraph import close_loops
+from .loops import Loop
 from .report import ride_metrics, top_view
 from .settings import LOOP_MIN_FRAMES, OdometrySettings
 from .state import STATE_FILE, State
@@ -141,7 +141,7 @@ def odometry(
         _track(ride, plan, predictor, tracker, state, dest, opt.progress)
     loops = None
     if tracker.places and (opt.loops is True or state.next_frame >= LOOP_MIN_FRAMES):
-        loops = _loops(ride, plan, predictor, tracker, state, opt, dest)
+        loops = ride_loops(ride, plan, predictor, tracker, state, opt, dest)
     masked = None if mask is None else {"file": str(mask_file), "occluded_fraction": float(1 - mask.mean())}
     return _finish(ride, state, dest, tracker, opt, depths, started, masked, loops)
 
@@ -303,46 +303,6 @@ def _track(
     state.save(dest / STATE_FILE)
 
 
-def _loops(
-    ride: Ride,
-    plan: Any,
-    predictor: Predictor,
-    tracker: Tracker,
-    state: State,
-    opt: OdometrySettings,
-    dest: Path,
-) -> list[Loop]:
-    """The ride's loops, found and verified once (then kept in the state)."""
-    if state.loops is not None:
-        return loops_from_rows(state.loops, state.loop_why)
-    t = time.perf_counter()
-    steps = keyframe_steps(np.stack(state.refined), tracker.every) if opt.refine else np.stack(state.net)
-    c2w = chain_poses(steps)
-    reach = np.asarray(state.reach, dtype=np.float64)
-    known = np.isfinite(reach)
-    fallback = 10 * float(np.median(np.linalg.norm(steps[:, :3, 3], axis=1)))  # no depth: ~ten steps
-    reach = np.where(known, reach, float(np.median(reach[known])) if known.any() else fallback)
-    pairs = loop_candidates(torch.from_numpy(np.stack(state.places)), opt.loop, c2w, reach)
-    wanted = {i for i, _, _ in pairs} | {j for _, j, _ in pairs}
-    images: dict[int, torch.Tensor] = {}
-    for i, rgb in ride.pick(wanted):
-        x = network_size(network_images([rgb], plan, predictor.device), predictor.size)[0]
-        images[i] = x.cpu()
-    missing = wanted - images.keys()
-    if missing:
-        raise CylsfmError(f"{ride.path}: frames {sorted(missing)[:5]} could not be read again for the loops")
-    depth = tracker.depths_of(sorted(wanted), images)
-    views = {i: tracker.view_of(x) for i, x in images.items()}
-    found = verify_loops(
-        pairs, views.__getitem__, depth.__getitem__, tracker.view, opt.loop, mask=tracker.view_mask()
-    )
-    found = check_loops(found, c2w, reach, opt.loop)
-    state.loops, state.loop_why = loop_rows(found), [lp.why for lp in found]
-    state.save(dest / STATE_FILE)
-    tracker.times.add("loops", t)
-    return found
-
-
 def _finish(
     ride: Ride,
     state: State,
@@ -358,13 +318,7 @@ def _finish(
     refine = opt.refine
     refined = keyframe_steps(np.stack(state.refined), tracker.every) if refine else None
     odometry_steps = refined if refined is not None else np.stack(state.net)
-    closed = None
-    accepted = [lp for lp in loops or [] if lp.accepted]
-    if accepted:
-        t = time.perf_counter()
-        closed_c2w, _ = close_loops(odometry_steps, accepted)
-        closed = np.stack([invert(closed_c2w[j + 1]) @ closed_c2w[j] for j in range(len(closed_c2w) - 1)])
-        tracker.times.add("pose graph", t)
+    closed = closed_steps(odometry_steps, loops, tracker.times)
     steps, unit, scale, comments = _in_unit(
         closed if closed is not None else odometry_steps, state, opt, depths
     )
@@ -377,12 +331,9 @@ def _finish(
         comments.append(f"mask: {masked['file']} ({masked['occluded_fraction']:.1%} of the pixels left out)")
     if (mount := _mount_summary(state)) is not None:
         comments.append(f"direction of travel in the panorama: {mount['yaw_deg']:.1f} deg ({mount['how']})")
-    loop_summary = _loop_summary(loops)
+    loop_summary = loop_summary_of(loops)
     if loop_summary is not None:
-        comments.append(
-            f"loops: {loop_summary['verified']} candidate pairs verified, {loop_summary['accepted']} accepted"
-            + (" (closed by a pose graph)" if accepted else "")
-        )
+        comments.append(loop_line(loop_summary))
     c2w = chain_poses(steps)
     times = np.asarray(state.times)
     write_tum(dest / "trajectory.txt", times, c2w, comments)
@@ -400,7 +351,7 @@ def _finish(
         "m" if scale or depths is not None else "network units",
         measured.truth if measured else None,
         measured.curves if measured else {},
-        links=[(lp.i, lp.j) for lp in accepted],
+        links=[(lp.i, lp.j) for lp in loops or [] if lp.accepted],
     )
     seconds = time.perf_counter() - started
     summary = {
@@ -468,28 +419,6 @@ def _mount_summary(state: State) -> dict[str, Any] | None:
         "agreement": agreement if pairs else None,
         "pairs": pairs,
         "how": how,
-    }
-
-
-def _loop_summary(loops: list[Loop] | None) -> dict[str, Any] | None:
-    """What the loop closure found (``None``: not looked for)."""
-    if loops is None:
-        return None
-    return {
-        "verified": len(loops),
-        "accepted": sum(lp.accepted for lp in loops),
-        "pairs": [
-            {
-                "i": lp.i,
-                "j": lp.j,
-                "accepted": lp.accepted,
-                "why": lp.why,
-                "inliers": lp.inliers,
-                "yaw_deg": math.degrees(math.atan2(lp.pose[0, 2], lp.pose[2, 2])),
-                "scale_ratio": lp.ratio,
-            }
-            for lp in loops
-        ],
     }
 
 

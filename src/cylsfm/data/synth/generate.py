@@ -81,9 +81,8 @@ def generate_dataset(
     Raises:
         InputError: an argument out of range (``sequences``, ``frames``, ``width``, ``height`` below 1,
             ``frames`` below 3, a negative ``first_index`` or ``workers``, ``config.supersample`` below 1,
-            an unknown ``projection``, ``occluder`` or ``config.route``, invalid ``split_fractions``, a
-            route the town has none of about the ride's length), or a sequence or split that already exists
-            in ``out`` without ``overwrite``. Nothing is written then (of the sequence that fails).
+            an unknown ``projection``, ``occluder`` or ``config.route``, invalid ``split_fractions``, no such
+            route in the town), or a sequence or split already in ``out`` without ``overwrite``.
     """
     out = Path(out)
     base = config or SynthConfig()

@@ -8,7 +8,8 @@ Usage::
 For each town (a sequence index of the benchmark, ``experiments/run.sh``'s seed 0: the same town as the
 benchmark's ride of that index, ``town_frames=150``) and route, a ride is generated at 256x64
 (``cylsfm synth``'s routes: ``block`` once around a block, ``eight`` a figure eight, ``back`` out and back
-in the opposite direction; ``stairs`` in a town whose buildings all look alike, never a place twice)
+in the opposite direction; ``stairs`` in a town whose buildings all look alike, never a place twice;
+``long``: a 1000-frame staircase in the plain town, for the time the loops add)
 and ``cylsfm odometry --refine --loops`` runs on it. One run gives both trajectories: refined without
 the loops (``refined``) and with them (``loops closed``); when no loop is accepted they are the same.
 Per ride: APE (Sim(3)) of both, the end-to-start gap of a closed ride as a fraction of its length (after
@@ -34,7 +35,9 @@ from cylsfm.evaluate.pose_metrics import trajectory_metrics
 from cylsfm.odometry import OdometrySettings
 
 SEED = 0  # experiments/run.sh's benchmark
-FRAMES = {"block": 350, "eight": 520, "back": 400, "stairs": 400}
+FRAMES = {"block": 350, "eight": 520, "back": 400, "stairs": 400, "long": 1000}
+#: the synth route of each ride kind ("long": a 1000-frame staircase in the plain town, for the time)
+ROUTE = {"block": "block", "eight": "eight", "back": "back", "stairs": "stairs", "long": "stairs"}
 CLOSED = ("block", "eight")
 
 
@@ -46,7 +49,7 @@ def make_ride(root: Path, town: int, route: str) -> Path:
         return seq
     for frames in FRAMES[route] + np.array([0, 50, -50, 100, -100, 150, 200]):
         try:
-            cfg = SynthConfig(route=route, town_frames=150, alike=route == "stairs")
+            cfg = SynthConfig(route=ROUTE[route], town_frames=150, alike=route == "stairs")
             generate_dataset(
                 root, sequences=1, first_index=town, frames=int(frames), width=256, height=64, seed=SEED,
                 config=cfg, progress=False, overwrite=True,

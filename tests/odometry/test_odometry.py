@@ -25,17 +25,19 @@ N_FRAMES = 10
 @pytest.fixture(scope="module")
 def ride(tmp_path_factory) -> Path:
     """A dataset sequence: a camera driving and turning through the room, 128x32, with depth and poses."""
+    poses = [make_pose(0.8 - 0.12 * i, 0.1, -2.0 + 0.3 * i, yaw_deg=-8.0 + 3.0 * i) for i in range(N_FRAMES)]
+    return _room_ride(tmp_path_factory.mktemp("data") / "ride", poses)
+
+
+def _room_ride(seq: Path, poses: list) -> Path:
+    """The room seen from camera-to-world ``poses`` at 128x32, written as a dataset sequence (5 fps)."""
     cam = CylindricalCamera.full(128, 32)
-    seq = tmp_path_factory.mktemp("data") / "ride"
     writer = SequenceWriter(seq, cam)
-    poses = []
-    for i in range(N_FRAMES):
-        c2w = make_pose(0.8 - 0.12 * i, 0.1, -2.0 + 0.3 * i, yaw_deg=-8.0 + 3.0 * i)
+    for c2w in poses:
         image, depth = render_room(cam, c2w, supersample=2)
         rgb = (image[0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
         writer.add_frame(rgb, depth[0, 0].numpy())
-        poses.append(c2w.numpy())
-    return writer.finish(np.stack(poses), timestamps=np.arange(N_FRAMES) * 0.2)
+    return writer.finish(np.stack([c.numpy() for c in poses]), timestamps=np.arange(len(poses)) * 0.2)
 
 
 def _run(ckpt, *args) -> int:
@@ -226,19 +228,12 @@ def test_sigterm_stops_odometry_like_ctrl_c_and_the_run_continues(ckpt, ride, tm
 @pytest.fixture(scope="module")
 def round_ride(tmp_path_factory) -> Path:
     """A ride once round a circle in the room (40 frames, 128x32), ending where it started."""
-    cam = CylindricalCamera.full(128, 32)
-    seq = tmp_path_factory.mktemp("data") / "round"
-    writer = SequenceWriter(seq, cam)
-    poses = []
-    for i in range(40):
-        a = 2 * math.pi * i / 39
-        c2w = make_pose(-1.0 + 1.5 * math.cos(a), 0.1, -1.0 + 1.5 * math.sin(a), yaw_deg=-math.degrees(a))
-        image, depth = render_room(cam, c2w, supersample=2)
-        writer.add_frame(
-            (image[0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy(), depth[0, 0].numpy()
-        )
-        poses.append(c2w.numpy())
-    return writer.finish(np.stack(poses), timestamps=np.arange(40) * 0.2)
+    angles = [2 * math.pi * i / 39 for i in range(40)]
+    poses = [
+        make_pose(-1.0 + 1.5 * math.cos(a), 0.1, -1.0 + 1.5 * math.sin(a), yaw_deg=-math.degrees(a))
+        for a in angles
+    ]
+    return _room_ride(tmp_path_factory.mktemp("data") / "round", poses)
 
 
 def test_a_ride_that_comes_back_closes_its_loop(ckpt, round_ride, tmp_path):

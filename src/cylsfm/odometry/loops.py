@@ -156,20 +156,22 @@ def loop_candidates(
     if n <= settings.min_gap:
         return []
     dist = sequence_distances(desc, settings.window)
-    plausible = np.ones_like(dist, dtype=bool)
-    if c2w is not None and reach is not None:
+    gated = c2w is not None and reach is not None
+    if gated:
         pos = c2w[:, :3, 3]
         travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
-        apart = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
-        allowed = settings.max_drift * np.abs(travelled[:, None] - travelled[None]) + 0.1 * reach[None]
-        plausible = apart <= allowed
     pairs = []
     for j in range(settings.min_gap, n):
-        earlier = dist[j, : j - settings.min_gap + 1]
+        m = j - settings.min_gap + 1
+        earlier = dist[j, :m]
         median = float(np.median(earlier))  # the query's typical distance, over every earlier frame
+        plausible = np.ones(m, dtype=bool)
+        if gated:  # one row at a time: no N x N matrices of positions
+            apart = np.linalg.norm(pos[:m] - pos[j], axis=-1)
+            plausible = apart <= settings.max_drift * (travelled[j] - travelled[:m]) + 0.1 * reach[:m]
         taken: list[int] = []
         for i in np.argsort(earlier, kind="stable"):
-            if not plausible[j, i]:
+            if not plausible[i]:
                 continue
             if all(abs(int(i) - t) > settings.window for t in taken):
                 taken.append(int(i))

@@ -9,7 +9,9 @@ For each town (a sequence index of the benchmark, ``experiments/run.sh``'s seed 
 benchmark's ride of that index, ``town_frames=150``) and route, a ride is generated at 256x64
 (``cylsfm synth``'s routes: ``block`` once around a block, ``eight`` a figure eight, ``back`` out and back
 in the opposite direction; ``stairs`` in a town whose buildings all look alike, never a place twice;
-``long``: a 1000-frame staircase in the plain town, for the time the loops add)
+``long``: a 1000-frame staircase in the plain town, for the time the loops add when nothing comes back;
+``long-back``: a 1000-frame ride out and back in a town built for 1000 frames, for their time when
+loops are verified and closed)
 and ``cylsfm odometry --refine --loops`` runs on it. One run gives both trajectories: refined without
 the loops (``refined``) and with them (``loops closed``); when no loop is accepted they are the same.
 Per ride: APE (Sim(3)) of both, the end-to-start gap of a closed ride as a fraction of its length (after
@@ -35,9 +37,18 @@ from cylsfm.evaluate.pose_metrics import trajectory_metrics
 from cylsfm.odometry import OdometrySettings
 
 SEED = 0  # experiments/run.sh's benchmark
-FRAMES = {"block": 350, "eight": 520, "back": 400, "stairs": 400, "long": 1000}
+FRAMES = {"block": 350, "eight": 520, "back": 400, "stairs": 400, "long": 1000, "long-back": 1000}
 #: the synth route of each ride kind ("long": a 1000-frame staircase in the plain town, for the time)
-ROUTE = {"block": "block", "eight": "eight", "back": "back", "stairs": "stairs", "long": "stairs"}
+ROUTE = {
+    "block": "block",
+    "eight": "eight",
+    "back": "back",
+    "stairs": "stairs",
+    "long": "stairs",
+    "long-back": "back",
+}
+#: the ride length each kind's town is built for (the benchmark's 150 frames: the same town as its ride)
+TOWN_FRAMES = {"long-back": 1000}
 CLOSED = ("block", "eight")
 
 
@@ -49,7 +60,9 @@ def make_ride(root: Path, town: int, route: str) -> Path:
         return seq
     for frames in FRAMES[route] + np.array([0, 50, -50, 100, -100, 150, 200]):
         try:
-            cfg = SynthConfig(route=ROUTE[route], town_frames=150, alike=route == "stairs")
+            cfg = SynthConfig(
+                route=ROUTE[route], town_frames=TOWN_FRAMES.get(route, 150), alike=route == "stairs"
+            )
             generate_dataset(
                 root, sequences=1, first_index=town, frames=int(frames), width=256, height=64, seed=SEED,
                 config=cfg, progress=False, overwrite=True,

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from cylsfm.data.synth.room import make_pose, render_room
-from cylsfm.errors import ShapeError
+from cylsfm.errors import InputError, ShapeError
 from cylsfm.geometry import (
     CylindricalCamera,
     EquirectangularCamera,
@@ -19,6 +19,7 @@ from cylsfm.geometry import (
     roll_columns,
     yaw_matrix,
 )
+from cylsfm.geometry.align import photometric_inliers
 from cylsfm.odometry import AlignConfig, align, ground_height, metric_scale
 
 
@@ -143,3 +144,27 @@ def test_ground_height_of_the_room_floor():
     assert ground_height(depth, cam).item() == pytest.approx(1.3, rel=0.01)
     scale, used = metric_scale(ground_height(depth * 2.0, cam).numpy(), 1.3)
     assert scale == pytest.approx(0.5, rel=0.01) and used == 1
+
+
+def test_inliers_insensitive_to_sampling_accept_a_long_baseline_and_still_reject_a_wrong_pose():
+    camera = CylindricalCamera.full(160, 40)
+    target = make_pose(0.0, 0.0, 0.0, yaw_deg=0.0)
+    source = make_pose(0.9, 0.0, -0.6, yaw_deg=150.0)  # far across the room, turned round
+    tgt, src, depth, true = _pair(camera, target, source)
+    wrong = true.clone()[None]
+    wrong[0, :3, :3] = (
+        yaw_matrix(torch.tensor([math.radians(20.0)]), dtype=torch.float64)[0] @ wrong[0, :3, :3]
+    )
+    poses = torch.cat((true[None], wrong)).double()
+    pair = (tgt.expand(2, -1, -1, -1), src.expand(2, -1, -1, -1), depth.expand(2, -1, -1, -1))
+    plain = photometric_inliers(*pair, poses, camera, spread=0)
+    insensitive = photometric_inliers(*pair, poses, camera)  # half a pixel (Birchfield and Tomasi)
+    assert (insensitive >= plain).all()  # the source's range always holds its bilinear sample
+    assert (
+        insensitive[0] > 0.9 > plain[0]
+    )  # the right pose: nearly all texture explained once sampling is not
+    assert insensitive[1] < 0.6  # a wrong pose (20 degrees off) stays below the loops' threshold
+    same = photometric_inliers(tgt, tgt, depth, torch.eye(4, dtype=torch.float64)[None], camera, spread=0)
+    assert same.item() == 1.0
+    with pytest.raises(InputError, match="spread"):
+        photometric_inliers(tgt, src, depth, true[None].double(), camera, spread=-1)

@@ -48,15 +48,24 @@ def test_a_revisit_at_another_heading_is_accepted_and_a_planted_false_loop_is_no
     shift = 40  # the camera turned: 112.5 degrees
     frames = {0: images[0], 1: roll_columns(images[0], shift, axis=-1), 2: images[2]}
     depth = {0: depths[0], 1: roll_columns(depths[0], shift, axis=-1), 2: depths[2]}
+    # the odometry: frame 1 back at frame 0's place, its heading 10 degrees off; frame 2 (another town) 100 m on
+    c2w = np.tile(np.eye(4), (3, 1, 1))
+    c2w[1, :3, :3] = rotation_y(np.asarray(-math.radians(shift / 128 * 360 + 10)))
+    c2w[1, 2, 3], c2w[2, 2, 3] = 0.5, 100.0
     pairs = [(0, 1, 0.1), (0, 2, 0.1)]
-    revisit, false = verify_loops(pairs, frames.__getitem__, depth.__getitem__, cam, LoopSettings())
+    revisit, false = verify_loops(pairs, frames.__getitem__, depth.__getitem__, cam, LoopSettings(), c2w=c2w)
     assert revisit.accepted and revisit.why == ""
     yaw = math.degrees(math.atan2(revisit.pose[0, 2], revisit.pose[2, 2]))
     assert yaw == pytest.approx(shift / 128 * 360, abs=0.5)
     assert np.linalg.norm(revisit.pose[:3, 3]) < 0.05 * float(depths[0][depths[0] > 0].median())
     assert revisit.ratio == pytest.approx(1.0, abs=0.01)
-    assert not false.accepted and false.why
     assert false.inliers < revisit.inliers
+    # another town of the same generator fits much of a rigid motion at 128x32 (the verification alone
+    # may pass it); the odometry, which puts it 100 m away, rejects it
+    reach = np.full(3, float(depths[0][depths[0] > 0].median()))
+    checked = check_loops([revisit, false], c2w, reach, LoopSettings(support=1))
+    assert checked[0].accepted
+    assert not checked[1].accepted and checked[1].why in ("few inliers", "farther than the odometry's drift")
 
 
 def test_a_revisit_a_metre_away_measures_the_step(streets):
@@ -89,9 +98,12 @@ def _line(n: int) -> np.ndarray:
     return c2w
 
 
-def _loop(i: int, j: int, c2w: np.ndarray, offset: float = 0.0) -> Loop:
+def _loop(i: int, j: int, c2w: np.ndarray, offset: float = 0.0, turn_deg: float = 0.0) -> Loop:
     pose = invert(c2w[j]) @ c2w[i]
     pose[2, 3] += offset
+    centre = -pose[:3, :3].T @ pose[:3, 3]  # camera j in frame i: kept where it is, turned
+    pose[:3, :3] = rotation_y(np.asarray(math.radians(turn_deg))) @ pose[:3, :3]
+    pose[:3, 3] = -pose[:3, :3] @ centre
     return Loop(i, j, pose, 1.0, 0.9, (0.0, 0.0), 0.1, True)
 
 
@@ -99,11 +111,20 @@ def test_checks_drop_a_loop_beyond_the_drift_and_a_loop_that_no_other_supports()
     c2w = _line(100)
     reach = np.full(100, 10.0)
     # agreeing loops 0->60, 1->61, 2->62 (the odometry's own relative poses), a lone one, and one 40 m off
+    # and one at the right place but turned round (a street seen the other way round, taken for the same view)
     loops = [_loop(k, 60 + k, c2w) for k in range(3)] + [_loop(30, 90, c2w), _loop(5, 95, c2w, offset=40.0)]
+    loops += [_loop(3, 63, c2w, turn_deg=180.0), _loop(4, 64, c2w, turn_deg=20.0)]
     checked = check_loops(loops, c2w, reach, LoopSettings())
-    assert [lp.accepted for lp in checked] == [True, True, True, False, False]
+    assert [lp.accepted for lp in checked] == [True, True, True, False, False, False, False]
     assert checked[3].why == "no other loop agrees"
     assert checked[4].why == "farther than the odometry's drift"
+    assert checked[5].why == "turned farther than the odometry's drift"
+    assert checked[6].why == "no other loop agrees"  # 20 degrees: within the heading drift allowed
+    # but not when the allowance is 10 degrees
+    strict = check_loops(
+        [*loops[:3], _loop(4, 64, c2w, turn_deg=20.0)], c2w, reach, LoopSettings(yaw_drift_deg=10.0)
+    )
+    assert strict[3].why == "turned farther than the odometry's drift"
     again = loops_from_rows(loop_rows(checked), [lp.why for lp in checked])
     assert [(lp.i, lp.j, lp.accepted, lp.why) for lp in again] == [
         (lp.i, lp.j, lp.accepted, lp.why) for lp in checked

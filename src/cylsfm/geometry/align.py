@@ -406,6 +406,17 @@ def photometric_costs(
     return torch.stack([_cost(lin, k) for lin in lins], 1)
 
 
+def _value_range(grey: Tensor, spread: float, wrap: bool) -> Tensor:
+    """``[B,1,h,w]`` -> ``[B,2,h,w]``: the lowest and highest value the image takes within ``spread``
+    pixels (``<= 1``) of each pixel, interpolated linearly towards its 8 neighbours."""
+    x = circular_pad(grey, 1, 1) if wrap else F.pad(grey, (1, 1, 0, 0), mode="replicate")
+    x = F.pad(x, (0, 0, 1, 1), mode="replicate")
+    h, w = grey.shape[-2:]
+    around = torch.stack([x[..., a : a + h, b : b + w] for a in range(3) for b in range(3)], 0)  # [9,B,1,h,w]
+    values = grey + spread * (around - grey)
+    return torch.cat((values.amin(0), values.amax(0)), 1)
+
+
 def photometric_inliers(
     target: Tensor,
     source: Tensor,
@@ -414,6 +425,7 @@ def photometric_inliers(
     camera: Camera,
     threshold: float = 0.25,
     min_gradient: float = 0.5,
+    spread: float = 0.5,
     wrap: bool | None = None,
     mask: Tensor | None = None,
 ) -> Tensor:
@@ -425,15 +437,31 @@ def photometric_inliers(
     would make two different places look alike. An absolute measure of fit, unlike :func:`align`'s cost
     (scaled by its own residuals): how much of the target's texture a rigid motion with this depth explains.
 
+    The residual is insensitive to sampling (after Birchfield and Tomasi): a target pixel's distance to the
+    range of the source's values within ``spread`` pixels of where its point lands (``0``: to the value
+    there). Seen from afar, or from a few metres to the side, a texture is sampled at other places and
+    other scales, and a rigid motion that is right leaves residuals of a whole pixel's contrast; those of a
+    wrong one stay outside the neighbourhood's range.
+
     Args:
         target, source: images ``[B,3,H,W]``; depth: the targets' depth ``[B,1,H,W]``.
         poses: ``T_{t->s}`` ``[B,4,4]``; camera, wrap, mask: as for :func:`align`.
+        spread: pixels, in ``[0, 1]``.
     """
     check_shape(poses, f"{target.shape[0]},4,4", "poses")
+    if not 0 <= spread <= 1:
+        raise InputError(f"photometric_inliers: spread must be in [0, 1], got {spread}")
     wrap = camera.wraps if wrap is None else wrap
     lv = _pyramid(target, source, depth, camera, wrap, 1, _mask(mask, target))[0]
     lin = _linearize(lv, poses.double())
+    residual = lin.r.abs()
+    if spread:
+        points = transform_points(poses.double(), lv.points)
+        low_high, _ = sample_image(
+            _value_range(lv.source[:, :1], spread, wrap), lv.camera.project(points), wrap
+        )
+        residual = torch.maximum(low_high[:, :1] - lv.target, lv.target - low_high[:, 1:]).clamp(min=0)
     grads = _gradients(lv.target, wrap)[:, 1:3].abs().amax(1, keepdim=True)  # [B,1,H,W]
     textured = lv.has_depth & (grads >= min_gradient)
-    good = (lin.valid & textured & (lin.r.abs() <= threshold)).flatten(1).sum(1)
+    good = (lin.valid & textured & (residual <= threshold)).flatten(1).sum(1)
     return good.double() / textured.flatten(1).sum(1).clamp(min=1).double()

@@ -41,7 +41,14 @@ def _spectrum(x: Tensor, mask: Tensor | None = None) -> Tensor:
     return torch.fft.rfft(grad.flatten(1, 2), dim=-1)
 
 
-def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125, mask: Tensor | None = None) -> Tensor:
+def column_shift(
+    a: Tensor,
+    b: Tensor,
+    low_band: float = 0.125,
+    mask: Tensor | None = None,
+    near: Tensor | None = None,
+    within: float | Tensor | None = None,
+) -> Tensor:
     """The circular column shift ``s`` with ``b ≈ roll_columns(a, s)``, to a fraction of a column.
 
     Args:
@@ -50,6 +57,10 @@ def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125, mask: Tensor | N
         low_band: fraction of the width's frequencies (from the lowest) whose phase refines the integer peak.
         mask: ``[B, 1, H, W]`` or ``[1, 1, H, W]``: 1 (True) where the scene is seen, 0 on an occluder fixed
             to the camera; ``None``: every pixel.
+        near, within: ``[B]`` shifts (columns) and the largest distance from them (columns, a number or
+            ``[B]``): only the peaks within ``within`` of ``near`` (circularly) are considered, e.g. a
+            prior from odometry that tells a street seen the other way round from the same street behind
+            the camera; ``None``: every shift.
 
     Returns:
         ``[B]`` shifts in columns (float64), in ``[-W/2, W/2)``.
@@ -74,7 +85,16 @@ def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125, mask: Tensor | N
     )  # [B, W//2+1]; pure shift: |A|^2 e^{-2pi i k s/W}
     cross[:, 0] = 0
     phase = cross / cross.abs().clamp_min(1e-12)
-    peak = torch.fft.irfft(phase, n=width, dim=-1).argmax(-1).to(torch.float64)  # [B]
+    score = torch.fft.irfft(phase, n=width, dim=-1)  # [B, W]: the correlation at each integer shift
+    if near is not None:
+        if within is None:
+            raise ShapeError("column_shift: near needs within")
+        shifts = torch.arange(width, dtype=torch.float64, device=a.device)
+        centre = near.to(device=a.device, dtype=torch.float64).reshape(-1, 1)
+        apart = torch.remainder(shifts - centre + width / 2, width) - width / 2
+        limit = torch.as_tensor(within, dtype=torch.float64, device=a.device).reshape(-1, 1)
+        score = torch.where(apart.abs() <= limit.clamp(min=0.5), score, torch.full_like(score, -math.inf))
+    peak = score.argmax(-1).to(torch.float64)  # [B]
     k = torch.arange(cross.shape[-1], dtype=torch.float64, device=a.device)
     # residual phase after removing the integer shift: -2 pi k d / W, fitted through the origin
     residual = torch.angle(cross * torch.exp(2j * math.pi * k * peak[:, None] / width))
@@ -85,7 +105,13 @@ def column_shift(a: Tensor, b: Tensor, low_band: float = 0.125, mask: Tensor | N
     return torch.remainder(shift + width / 2, width) - width / 2
 
 
-def compass_yaw(a: Tensor, b: Tensor, mask: Tensor | None = None) -> Tensor:
+def compass_yaw(
+    a: Tensor,
+    b: Tensor,
+    mask: Tensor | None = None,
+    near: Tensor | None = None,
+    within: float | Tensor | None = None,
+) -> Tensor:
     """The yaw (radians) between the cameras of two full panoramas ``a`` and ``b``.
 
     Camera points of ``b`` are ``yaw_matrix(yaw) @`` those of ``a`` (as for a panorama rolled by
@@ -97,8 +123,14 @@ def compass_yaw(a: Tensor, b: Tensor, mask: Tensor | None = None) -> Tensor:
         a: panoramas ``[B, C, H, W]``, full 360° width.
         b: the same cameras after the motion, same shape.
         mask: as for :func:`column_shift`.
+        near, within: ``[B]`` yaws (radians) and the largest distance from them (radians, a number or
+            ``[B]``): only yaws that close are considered (see :func:`column_shift`); ``None``: any yaw.
 
     Returns:
         ``[B]`` yaws in radians (float64), in ``[-pi, pi)``.
     """
-    return column_shift(a, b, mask=mask) * (2 * math.pi / a.shape[-1])
+    per = a.shape[-1] / (2 * math.pi)  # columns per radian
+    if near is not None:
+        within = None if within is None else torch.as_tensor(within, dtype=torch.float64) * per
+        near = near.to(torch.float64) * per
+    return column_shift(a, b, mask=mask, near=near, within=within) / per

@@ -57,7 +57,7 @@ def ride_loops(
     depth = tracker.depths_of(sorted(wanted), images)
     views = {i: tracker.view_of(x) for i, x in images.items()}
     found = verify_loops(
-        pairs, views.__getitem__, depth.__getitem__, tracker.view, opt.loop, mask=tracker.view_mask()
+        pairs, views.__getitem__, depth.__getitem__, tracker.view, opt.loop, mask=tracker.view_mask(), c2w=c2w
     )
     found = check_loops(found, c2w, reach, opt.loop)
     state.loops, state.loop_why = loop_rows(found), [lp.why for lp in found]
@@ -67,7 +67,9 @@ def ride_loops(
 
 
 def loop_summary_of(loops: list[Loop] | None) -> dict[str, Any] | None:
-    """What the loop closure found (``None``: not looked for)."""
+    """What the loop closure found (``None``: not looked for): per verified pair its frames, whether it was
+    accepted (and why not), the inlier fraction, the yaw, the scale ratio and the relative pose ``T_{i->j}``
+    (16 numbers, row by row; translation in frame ``i``'s depth unit)."""
     if loops is None:
         return None
     return {
@@ -82,6 +84,7 @@ def loop_summary_of(loops: list[Loop] | None) -> dict[str, Any] | None:
                 "inliers": lp.inliers,
                 "yaw_deg": math.degrees(math.atan2(lp.pose[0, 2], lp.pose[2, 2])),
                 "scale_ratio": lp.ratio,
+                "pose": [round(float(v), 6) for v in lp.pose.ravel()],
             }
             for lp in loops
         ],

@@ -7,13 +7,17 @@
    passed before from one that merely looks like it far better than one frame does. Each query frame
    keeps its few nearest earlier frames (at least ``min_gap`` frames back); the pairs are ranked by their
    distance relative to the query's median, and the best ones are verified.
-2. **Verification** by geometry, not appearance: the visual compass's yaw between the two panoramas (in
-   closed form, any heading) and direct photometric alignment with the network's depth, started from a
-   few translations around the first frame (:func:`~cylsfm.geometry.align.align`), in both directions
-   (the second frame's depth aligned back to the first). A revisit is accepted when the two directions
-   agree (their composition is near the identity) and most pixels fit (the inlier fraction of
-   :func:`~cylsfm.geometry.align.photometric_inliers`, both ways). Two streets that look alike but are
-   not the same place do not fit a rigid motion with the depth of either.
+2. **Verification** by geometry: the visual compass's yaw between the two panoramas (in closed form,
+   looked for within the heading the odometry can have lost: a straight street looks much the same ahead
+   and behind, a crossing four ways round, but the odometry knows which way the camera faces) and direct
+   photometric alignment with the network's depth, started from translations around the first frame out
+   to its median depth (:func:`~cylsfm.geometry.align.align`: a street driven back on the other side of
+   the road is several metres across), in both directions (the second frame's depth aligned back to the
+   first). A revisit is accepted when the two directions agree (their composition is near the identity)
+   and most textured pixels fit (the inlier fraction of
+   :func:`~cylsfm.geometry.align.photometric_inliers`, both ways, insensitive to where the other frame
+   samples a texture within a pixel). Streets that only look alike are told apart by the odometry: a
+   revisit must lie within its plausible drift (position and heading) and agree with its neighbours.
 
 The relative pose of an accepted loop ``T_{i->j}`` (``p_j = T p_i``) is in frame ``i``'s depth unit; the
 ratio of the two frames' depth units is measured by the depths themselves (frame ``i``'s points moved
@@ -55,12 +59,18 @@ class LoopSettings:
         window: sequence matching over ``2 * window + 1`` frames around each.
         per_query: the nearest earlier frames each query frame keeps (apart by at least ``window``).
         max_pairs: pairs verified at most in a ride.
-        min_inliers: the smallest inlier fraction (both ways) of an accepted loop.
+        min_inliers: the smallest inlier fraction (both ways, :func:`~cylsfm.geometry.align.photometric_inliers`
+            insensitive to sampling within a pixel) of an accepted loop.
         max_rotation_deg, max_translation: the largest disagreement of the two directions' poses:
             rotation (degrees) and translation (as a fraction of the first frame's median depth).
         max_drift: a loop may move the second frame, relative to the first, by at most this fraction of
             the distance the odometry travelled between them (plus a tenth of the median depth): the
             drift odometry can plausibly have; a loop that asks for more is a place that only looks alike.
+        yaw_drift_deg, yaw_drift_per_frame_deg: the heading the odometry can plausibly have lost between
+            the two frames: ``yaw_drift_deg`` plus ``yaw_drift_per_frame_deg`` per frame between them
+            (degrees). The visual compass looks for the yaw only that close to the odometry's, and a loop
+            that turns farther from it is rejected: a straight street looks much the same ahead and
+            behind, and a crossing four ways round, but the odometry knows which way the camera faces.
         support: an accepted loop needs at least this many accepted loops (itself included) nearby (both
             frames within ``span`` frames of its own) that agree with it through the odometry between
             them; a revisit is seen by several consecutive frames, a lookalike rarely agrees with itself.
@@ -72,10 +82,12 @@ class LoopSettings:
     window: int = 5
     per_query: int = 2
     max_pairs: int = 64
-    min_inliers: float = 0.5
+    min_inliers: float = 0.6
     max_rotation_deg: float = 3.0
     max_translation: float = 0.1
     max_drift: float = 0.15
+    yaw_drift_deg: float = 30.0
+    yaw_drift_per_frame_deg: float = 0.02
     support: int = 2
     span: int = 20
     align: AlignConfig = field(default_factory=lambda: AlignConfig(levels=4, iterations=8))
@@ -85,6 +97,11 @@ class LoopSettings:
             raise InputError(
                 "loops: min_gap must be at least 2, window at least 0, per_query at least 1, max_pairs at "
                 f"least 0; got {self.min_gap}, {self.window}, {self.per_query}, {self.max_pairs}"
+            )
+        if self.yaw_drift_deg < 0 or self.yaw_drift_per_frame_deg < 0:
+            raise InputError(
+                "loops: yaw_drift_deg and yaw_drift_per_frame_deg must be >= 0, got "
+                f"{self.yaw_drift_deg}, {self.yaw_drift_per_frame_deg}"
             )
         if not 0 <= self.min_inliers <= 1:
             raise InputError(f"loops: min_inliers must be in [0, 1], got {self.min_inliers}")
@@ -183,14 +200,15 @@ def loop_candidates(
 
 
 def _starts(yaw: Tensor, reach: Tensor) -> Tensor:
-    """Starting poses ``[B,9,4,4]``: the compass's rotation, with no translation and with 8 around the
-    first camera (8 directions, at a third of ``reach`` ``[B]``)."""
+    """Starting poses ``[B,17,4,4]``: the compass's rotation, with no translation and with 16 around the
+    first camera (8 directions, at a third of ``reach`` ``[B]`` and at ``reach``: a street driven back on
+    the other side of the road is several metres across)."""
     b = yaw.shape[0]
     rot = yaw_matrix(yaw, dtype=torch.float64)
-    out = torch.eye(4, dtype=torch.float64).repeat(b, 9, 1, 1)
+    out = torch.eye(4, dtype=torch.float64).repeat(b, 17, 1, 1)
     out[:, :, :3, :3] = rot[:, None]
     k = 1
-    for r in (1 / 3,):
+    for r in (1 / 3, 1.0):
         for a in range(8):
             ang = 2 * math.pi * a / 8
             offset = torch.tensor([math.sin(ang), 0.0, math.cos(ang)], dtype=torch.float64)
@@ -227,6 +245,7 @@ def verify_loops(
     settings: LoopSettings,
     mask: Tensor | None = None,
     batch: int = 8,
+    c2w: np.ndarray | None = None,
 ) -> list[Loop]:
     """Verify candidate pairs (see the module docstring).
 
@@ -235,6 +254,9 @@ def verify_loops(
         image_of, depth_of: frame index -> its network-size image ``[3,H,W]`` / depth ``[1,H,W]``.
         camera: the camera of those images (a full panorama).
         mask: ``[1,1,H,W]``: 1 where the scene is seen; ``None``: every pixel.
+        c2w: the odometry's camera-to-world poses ``[M,4,4]``: with them, the compass looks for the yaw
+            only within the odometry's plausible heading drift of its yaw (:class:`LoopSettings`);
+            ``None``: any yaw.
 
     Returns:
         One :class:`Loop` per pair, accepted or not.
@@ -246,7 +268,12 @@ def verify_loops(
         img_j = torch.stack([image_of(j) for _, j, _ in chunk]).float()
         dep_i = torch.stack([depth_of(i) for i, _, _ in chunk]).float()
         dep_j = torch.stack([depth_of(j) for _, j, _ in chunk]).float()
-        yaw = compass_yaw(img_i, img_j, mask)
+        if c2w is None:
+            yaw = compass_yaw(img_i, img_j, mask)
+        else:
+            near = torch.tensor([_odometry_yaw(c2w, i, j) for i, j, _ in chunk], dtype=torch.float64)
+            within = torch.tensor([_yaw_allowance(settings, i, j) for i, j, _ in chunk], dtype=torch.float64)
+            yaw = compass_yaw(img_i, img_j, mask, near=near, within=within)
         reach_i, reach_j = _median_depth(dep_i), _median_depth(dep_j)
         fwd = align(img_i, img_j, dep_i, _starts(yaw, reach_i), camera, config=settings.align, mask=mask)
         inl_f = photometric_inliers(img_i, img_j, dep_i, fwd.poses, camera, mask=mask)
@@ -280,6 +307,17 @@ def verify_loops(
     return out
 
 
+def _odometry_yaw(c2w: np.ndarray, i: int, j: int) -> float:
+    """The yaw (radians) of the odometry's ``T_{i->j}`` (as :func:`~cylsfm.geometry.compass_yaw`'s)."""
+    r = invert(c2w[j])[:3, :3] @ c2w[i][:3, :3]
+    return math.atan2(float(r[0, 2]), float(r[2, 2]))
+
+
+def _yaw_allowance(settings: LoopSettings, i: int, j: int) -> float:
+    """The heading drift (radians) the odometry can plausibly have between frames ``i`` and ``j``."""
+    return math.radians(min(180.0, settings.yaw_drift_deg + settings.yaw_drift_per_frame_deg * abs(j - i)))
+
+
 def _rotation_deg(r: np.ndarray) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(r)) - 1) / 2))))
 
@@ -304,6 +342,10 @@ def check_loops(loops: list[Loop], c2w: np.ndarray, reach: np.ndarray, settings:
         allowed = settings.max_drift * (travelled[lp.j] - travelled[lp.i]) + 0.1 * reach[lp.i]
         if np.linalg.norm(centre_loop - centre_odo) > allowed:
             lp.accepted, lp.why = False, "farther than the odometry's drift"
+            continue
+        turn = math.atan2(float(lp.pose[0, 2]), float(lp.pose[2, 2])) - _odometry_yaw(c2w, lp.i, lp.j)
+        if abs(math.remainder(turn, 2 * math.pi)) > _yaw_allowance(settings, lp.i, lp.j):
+            lp.accepted, lp.why = False, "turned farther than the odometry's drift"
     kept = [lp for lp in loops if lp.accepted]
     for a in kept:
         agree = sum(

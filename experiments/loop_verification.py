@@ -1,0 +1,99 @@
+"""How well the loop verification tells a place passed before from one that only looks like it: the
+measurement behind the threshold of :attr:`cylsfm.odometry.LoopSettings.min_inliers`.
+
+Usage::
+
+    python experiments/loop_verification.py CHECKPOINT OUT [--towns 0 2 3] [--routes back stairs block eight]
+
+Each ride (``experiments/loops.py``'s rides, generated under ``OUT/data``) runs through ``cylsfm odometry
+--refine --loops`` with the odometry's gates on (drift and heading) but no inlier threshold and no support:
+every candidate pair is aligned both ways and its inlier fraction kept. A pair's relative pose is right
+when it is within 5 degrees and 2 m plus a tenth of the distance of the truth (the translation brought
+to metres by the refined odometry's scale over the ten steps around the first frame), wrong otherwise.
+Printed per ride and over all, for the pairs that passed the gates: the inlier fractions of the right and
+of the wrong pairs (quantiles), and how many of each a threshold accepts. The default towns
+are training towns: the threshold is chosen here and measured on the held-out towns by
+``experiments/loops.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from loops import make_ride
+
+import cylsfm
+from cylsfm.data.io import read_tum
+from cylsfm.odometry import OdometrySettings
+from cylsfm.odometry.loops import LoopSettings
+
+THRESHOLDS = (0.4, 0.5, 0.6, 0.7, 0.8)
+
+
+def pairs_of(seq: Path, out: Path, checkpoint: str) -> list[dict]:
+    """Every pair that passed the odometry's gates, with its inlier fraction, its true distance (metres),
+    its rotation and translation errors (degrees, metres) and whether it is right."""
+    loop = LoopSettings(min_inliers=0.0, support=1)
+    settings = OdometrySettings(progress=False, refine=True, loops=True, loop=loop)
+    result = cylsfm.odometry(seq, checkpoint, out, settings)
+    _, gt = read_tum(seq / "poses.txt")
+    with np.load(out / ".odometry-state.npz", allow_pickle=False) as state:
+        steps = state["refined"]  # T_{k->k+1}, the odometry's unit
+    kept = []
+    for p in (result.loops or {"pairs": []})["pairs"]:
+        if "drift" in p["why"]:
+            continue
+        i, j = p["i"], p["j"]
+        pose, truth = np.asarray(p["pose"]).reshape(4, 4), np.linalg.inv(gt[j]) @ gt[i]
+        lo, hi = max(0, i - 5), min(len(steps), i + 5)
+        scale = np.linalg.norm(np.diff(gt[lo : hi + 1, :3, 3], axis=0), axis=1).sum() / max(
+            np.linalg.norm(steps[lo:hi, :3, 3], axis=1).sum(), 1e-9
+        )
+        r = pose[:3, :3].T @ truth[:3, :3]
+        p["rotation_error_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+        p["translation_error_m"] = float(np.linalg.norm(scale * pose[:3, 3] - truth[:3, 3]))
+        p["metres"] = float(np.linalg.norm(gt[i, :3, 3] - gt[j, :3, 3]))
+        p["right"] = p["rotation_error_deg"] < 5 and p["translation_error_m"] < 2 + 0.1 * p["metres"]
+        kept.append(p)
+    return kept
+
+
+def summary(pairs: list[dict]) -> str:
+    true = np.array([p["inliers"] for p in pairs if p["right"]])
+    false = np.array([p["inliers"] for p in pairs if not p["right"]])
+
+    def q(x: np.ndarray) -> str:
+        return "-" if len(x) == 0 else " / ".join(f"{v:.2f}" for v in np.quantile(x, [0.1, 0.5, 0.9, 1.0]))
+
+    counts = ", ".join(
+        f">={t}: {int((true >= t).sum())} right, {int((false >= t).sum())} wrong" for t in THRESHOLDS
+    )
+    return f"right {len(true)} (10/50/90/100%: {q(true)}); wrong {len(false)} ({q(false)}); {counts}"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("checkpoint")
+    p.add_argument("out", type=Path)
+    p.add_argument("--towns", type=int, nargs="*", default=[0, 2, 3])
+    p.add_argument("--routes", nargs="*", default=["back", "stairs", "block", "eight"])
+    args = p.parse_args()
+    everything = []
+    for town in args.towns:
+        for route in args.routes:
+            name = f"{route}-{town:03d}"
+            seq = make_ride(args.out / "data" / route, town, route)
+            pairs = pairs_of(seq, args.out / "odometry" / name, args.checkpoint)
+            everything += pairs
+            print(name, summary(pairs), flush=True)
+    print("all", summary(everything))
+    args.out.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "pairs.json").write_text(json.dumps(everything, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -18,12 +18,11 @@ are training towns: the threshold is chosen here and measured on the held-out to
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 import numpy as np
-from loops import make_ride
+from loops import each_ride, ride_arguments
 
 import cylsfm
 from cylsfm.data.io import read_tum
@@ -75,22 +74,13 @@ def summary(pairs: list[dict]) -> str:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("checkpoint")
-    p.add_argument("out", type=Path)
-    p.add_argument("--towns", type=int, nargs="*", default=[0, 2, 3])
-    p.add_argument("--routes", nargs="*", default=["back", "stairs", "block", "eight"])
-    args = p.parse_args()
+    args = ride_arguments(__doc__.split("\n\n")[0], [0, 2, 3], ["back", "stairs", "block", "eight"])
     everything = []
-    for town in args.towns:
-        for route in args.routes:
-            name = f"{route}-{town:03d}"
-            seq = make_ride(args.out / "data" / route, town, route)
-            pairs = pairs_of(seq, args.out / "odometry" / name, args.checkpoint)
-            everything += pairs
-            print(name, summary(pairs), flush=True)
+    for name, seq, out in each_ride(args):
+        pairs = pairs_of(seq, out, args.checkpoint)
+        everything += pairs
+        print(name, summary(pairs), flush=True)
     print("all", summary(everything))
-    args.out.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "pairs.json").write_text(json.dumps(everything, indent=1) + "\n")
 

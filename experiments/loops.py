@@ -122,23 +122,33 @@ def show(table: dict) -> None:
         )
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def ride_arguments(description: str, towns: list[int], routes: list[str]) -> argparse.Namespace:
+    """The command line of a script that runs rides: ``CHECKPOINT OUT [--towns ...] [--routes ...]``."""
+    p = argparse.ArgumentParser(description=description)
     p.add_argument("checkpoint")
     p.add_argument("out", type=Path)
-    p.add_argument("--towns", type=int, nargs="*", default=[1, 8, 15])
-    p.add_argument("--routes", nargs="*", default=["block", "eight", "back", "stairs"])
-    args = p.parse_args()
-    table_file = args.out / "table.json"
-    table = json.loads(table_file.read_text()) if table_file.is_file() else {}
+    p.add_argument("--towns", type=int, nargs="*", default=towns)
+    p.add_argument("--routes", nargs="*", default=routes)
+    return p.parse_args()
+
+
+def each_ride(args: argparse.Namespace):
+    """``(name, sequence, odometry output)`` of every town and route asked for, each ride made once."""
     for town in args.towns:
         for route in args.routes:
             name = f"{route}-{town:03d}"
-            seq = make_ride(args.out / "data" / route, town, route)
-            table[name] = measure(seq, args.out / "odometry" / name, args.checkpoint)
-            args.out.mkdir(parents=True, exist_ok=True)
-            table_file.write_text(json.dumps(table, indent=2) + "\n")
-            print(name, json.dumps(table[name]), flush=True)
+            yield name, make_ride(args.out / "data" / route, town, route), args.out / "odometry" / name
+
+
+def main() -> None:
+    args = ride_arguments(__doc__.split("\n\n")[0], [1, 8, 15], ["block", "eight", "back", "stairs"])
+    table_file = args.out / "table.json"
+    table = json.loads(table_file.read_text()) if table_file.is_file() else {}
+    for name, seq, out in each_ride(args):
+        table[name] = measure(seq, out, args.checkpoint)
+        args.out.mkdir(parents=True, exist_ok=True)
+        table_file.write_text(json.dumps(table, indent=2) + "\n")
+        print(name, json.dumps(table[name]), flush=True)
     show(table)
 
 

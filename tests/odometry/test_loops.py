@@ -13,7 +13,7 @@ import torch
 from cylsfm.data.format import load_depth, load_image
 from cylsfm.data.synth import generate_dataset
 from cylsfm.evaluate.pose_metrics import chain_poses, trajectory_metrics
-from cylsfm.geometry import invert, load_camera, place_descriptor, roll_columns, rotation_y
+from cylsfm.geometry import invert, load_camera, place_descriptor, place_distance, roll_columns, rotation_y
 from cylsfm.odometry.loops import (
     Loop,
     LoopSettings,
@@ -21,6 +21,7 @@ from cylsfm.odometry.loops import (
     loop_candidates,
     loop_rows,
     loops_from_rows,
+    sequence_distances,
     verify_loops,
 )
 from cylsfm.odometry.posegraph import close_loops
@@ -90,6 +91,22 @@ def test_candidates_pair_the_frames_of_a_place_seen_again():
     assert all(j - i == 60 for i, j, _ in top), top
     assert all(i + 60 == j for i, j, _ in pairs[:8])
     assert loop_candidates(place_descriptor(base[:15]), LoopSettings(min_gap=20)) == []
+
+
+def test_sequence_distances_by_blocks_of_rows_are_the_whole_matrix_s_rows():
+    desc = torch.nn.functional.normalize(
+        torch.rand(40, 12, generator=torch.Generator().manual_seed(1)), dim=1
+    )
+    plain = place_distance(desc, desc).double().numpy()
+    assert np.allclose(sequence_distances(desc, 0), plain)
+    whole = sequence_distances(desc, 3)
+    # by hand for one pair: the better of the same-order and the reverse-order mean over the 7 frames
+    i, j = 10, 30
+    same = np.mean([plain[i + t, j + t] for t in range(-3, 4)])
+    back = np.mean([plain[i + t, j - t] for t in range(-3, 4)])
+    assert whole[i, j] == pytest.approx(min(same, back))
+    for a, b in ((0, 5), (2, 9), (35, 40), (0, 40)):
+        np.testing.assert_allclose(sequence_distances(desc, 3, (a, b)), whole[a:b], atol=1e-12)
 
 
 def _line(n: int) -> np.ndarray:

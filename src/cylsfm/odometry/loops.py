@@ -133,20 +133,32 @@ class Loop:
     why: str = ""
 
 
-def sequence_distances(desc: Tensor, window: int) -> np.ndarray:
-    """Descriptor distances ``[N,N]`` averaged over ``2 * window + 1`` frames: for each pair the smaller
+def sequence_distances(desc: Tensor, window: int, rows: tuple[int, int] | None = None) -> np.ndarray:
+    """Descriptor distances ``[R,N]`` averaged over ``2 * window + 1`` frames: for each pair the smaller
     of the same-order average (``d(i+t, j+t)``) and the reverse-order one (``d(i+t, j-t)``), over the
-    frames that exist."""
-    d = place_distance(desc, desc).double().numpy()
-    n = len(d)
+    frames that exist.
+
+    Args:
+        desc: the frames' descriptors ``[N,D]``.
+        window: frames on each side.
+        rows: the query frames ``[a, b)`` whose rows are wanted (``R = b - a``); ``None``: all (``R = N``).
+            Only ``R + 2 * window`` rows of plain distances are held at once, so a long ride is searched
+            a block of rows at a time.
+    """
+    n = desc.shape[0]
+    a, b = (0, n) if rows is None else rows
+    lo, hi = max(0, a - window), min(n, b + window)
+    d = np.full((b - a + 2 * window, n + 2 * window), np.nan)  # rows a-w .. b+w, columns -w .. n+w
+    d[lo - a + window : hi - a + window, window : window + n] = (
+        place_distance(desc[lo:hi], desc).double().numpy()
+    )
     if window == 0:
-        return d
-    pad = np.pad(d, window, constant_values=np.nan)
-    best = np.full_like(d, np.inf)
+        return d[:, :n]
+    best = np.full((b - a, n), np.inf)
     for sign in (1, -1):
-        total, count = np.zeros_like(d), np.zeros_like(d)
+        total, count = np.zeros_like(best), np.zeros_like(best)
         for t in range(-window, window + 1):
-            part = pad[window + t : window + t + n, window + sign * t : window + sign * t + n]
+            part = d[window + t : window + t + b - a, window + sign * t : window + sign * t + n]
             total += np.nan_to_num(part)
             count += ~np.isnan(part)
         best = np.minimum(best, total / np.maximum(count, 1))
@@ -172,15 +184,18 @@ def loop_candidates(
     n = desc.shape[0]
     if n <= settings.min_gap:
         return []
-    dist = sequence_distances(desc, settings.window)
+    block, dist, first = 256, np.empty((0, n)), 0  # query rows [first, first + len(dist)) held
     gated = c2w is not None and reach is not None
     if gated:
         pos = c2w[:, :3, 3]
         travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     pairs = []
     for j in range(settings.min_gap, n):
+        if j >= first + len(dist):
+            first = j
+            dist = sequence_distances(desc, settings.window, (j, min(n, j + block)))
         m = j - settings.min_gap + 1
-        earlier = dist[j, :m]
+        earlier = dist[j - first, :m]
         median = float(np.median(earlier))  # the query's typical distance, over every earlier frame
         plausible = np.ones(m, dtype=bool)
         if gated:  # one row at a time: no N x N matrices of positions

@@ -158,7 +158,7 @@ def test_inliers_insensitive_to_sampling_accept_a_long_baseline_and_still_reject
     poses = torch.cat((true[None], wrong)).double()
     pair = (tgt.expand(2, -1, -1, -1), src.expand(2, -1, -1, -1), depth.expand(2, -1, -1, -1))
     plain = photometric_inliers(*pair, poses, camera, spread=0)
-    insensitive = photometric_inliers(*pair, poses, camera)  # half a pixel (Birchfield and Tomasi)
+    insensitive = photometric_inliers(*pair, poses, camera)  # within a pixel (after Birchfield and Tomasi)
     assert (insensitive >= plain).all()  # the source's range always holds its bilinear sample
     assert (
         insensitive[0] > 0.9 > plain[0]

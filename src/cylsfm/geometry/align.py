@@ -425,7 +425,7 @@ def photometric_inliers(
     camera: Camera,
     threshold: float = 0.25,
     min_gradient: float = 0.5,
-    spread: float = 0.5,
+    spread: float = 1.0,
     wrap: bool | None = None,
     mask: Tensor | None = None,
 ) -> Tensor:
@@ -438,10 +438,10 @@ def photometric_inliers(
     (scaled by its own residuals): how much of the target's texture a rigid motion with this depth explains.
 
     The residual is insensitive to sampling (after Birchfield and Tomasi): a target pixel's distance to the
-    range of the source's values within ``spread`` pixels of where its point lands (``0``: to the value
-    there). Seen from afar, or from a few metres to the side, a texture is sampled at other places and
-    other scales, and a rigid motion that is right leaves residuals of a whole pixel's contrast; those of a
-    wrong one stay outside the neighbourhood's range.
+    range of the source's values within ``spread`` pixels of where its point lands (``1``: the 3x3
+    neighbourhood; ``0``: the value there). Seen from afar, or from a few metres to the side, a texture is
+    sampled at other places and scales, and even the right rigid motion leaves residuals of a pixel's
+    contrast; a wrong one leaves most of them outside the neighbourhood's range.
 
     Args:
         target, source: images ``[B,3,H,W]``; depth: the targets' depth ``[B,1,H,W]``.

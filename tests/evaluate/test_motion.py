@@ -76,18 +76,19 @@ def test_compass_yaw_is_the_rotation_of_the_relative_pose():
 
 def test_compass_near_a_prior_picks_the_peak_of_a_street_seen_the_other_way_round():
     """A scene that repeats every half turn (a straight street looks much the same ahead and behind) has
-    two equal peaks; a prior within a quarter turn picks the one near it, without it the first wins."""
+    two equal peaks; a prior within a quarter turn picks the one near it."""
     half = _panorama(3)[..., :128]
     a = torch.cat((half, half), -1)
     b = roll_columns(a, 20)
-    assert column_shift(a, b).tolist() == pytest.approx([20, 20], abs=1e-6)
+    for got in column_shift(a, b).tolist():  # without a prior either peak (which one is rounding's choice)
+        assert got == pytest.approx(20, abs=1e-6) or got == pytest.approx(-108, abs=1e-6)
     near = torch.tensor([-100.0, 150.0])  # both nearest to 148 (= 20 + 128, i.e. -108)
     assert column_shift(a, b, near=near, within=40.0).tolist() == pytest.approx([-108, -108], abs=1e-6)
     yaw = compass_yaw(a, b, near=torch.tensor([3.0, 3.0]), within=math.radians(40))
     assert yaw.tolist() == pytest.approx([roll_angle(-108, 256)] * 2, abs=1e-9)
     # a window too narrow for any true peak still returns the best shift inside it
     inside = column_shift(a, b, near=torch.tensor([60.0, 60.0]), within=torch.tensor([5.0, 5.0]))
-    assert ((inside >= 54) & (inside <= 66)).all()
+    assert ((inside >= 54) & (inside <= 66)).all()  # the window's peak, refined by at most a column
     with pytest.raises(ValueError, match="within"):
         column_shift(a, b, near=near)
 

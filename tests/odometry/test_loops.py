@@ -105,6 +105,19 @@ def test_sequence_distances_by_blocks_of_rows_are_the_whole_matrix_s_rows():
     same = np.mean([plain[i + t, j + t] for t in range(-3, 4)])
     back = np.mean([plain[i + t, j - t] for t in range(-3, 4)])
     assert whole[i, j] == pytest.approx(min(same, back))
+    n = len(plain)
+
+    def by_hand(q: int, c: int) -> float:  # over the frames that exist, the better of the two orders
+        means = []
+        for sign in (1, -1):
+            ds = [
+                plain[q + t, c + sign * t] for t in range(-3, 4) if 0 <= q + t < n and 0 <= c + sign * t < n
+            ]
+            means.append(np.mean(ds))
+        return min(means)
+
+    for q, c in ((0, 39), (1, 38), (39, 0), (38, 2), (0, 0), (20, 39)):  # at the ends: fewer frames
+        assert whole[q, c] == pytest.approx(by_hand(q, c))
     for a, b in ((0, 5), (2, 9), (35, 40), (0, 40)):
         np.testing.assert_allclose(sequence_distances(desc, 3, (a, b)), whole[a:b], atol=1e-12)
 

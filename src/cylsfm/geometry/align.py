@@ -407,8 +407,8 @@ def photometric_costs(
 
 
 def _value_range(grey: Tensor, spread: float, wrap: bool) -> Tensor:
-    """``[B,1,h,w]`` -> ``[B,2,h,w]``: the lowest and highest value the image takes within ``spread``
-    pixels (``<= 1``) of each pixel, interpolated linearly towards its 8 neighbours."""
+    """``[B,1,h,w]`` -> ``[B,2,h,w]``: the lowest and highest value the image takes on the way from each
+    pixel towards its 8 neighbours, ``spread`` (``<= 1``) of the way (linearly interpolated)."""
     x = circular_pad(grey, 1, 1) if wrap else F.pad(grey, (1, 1, 0, 0), mode="replicate")
     x = F.pad(x, (0, 0, 1, 1), mode="replicate")
     h, w = grey.shape[-2:]

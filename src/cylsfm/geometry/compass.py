@@ -25,7 +25,7 @@ import math
 import torch
 from torch import Tensor
 
-from ..errors import ShapeError, check_shape
+from ..errors import InputError, ShapeError, check_shape
 
 __all__ = ["column_shift", "compass_yaw"]
 
@@ -88,7 +88,7 @@ def column_shift(
     score = torch.fft.irfft(phase, n=width, dim=-1)  # [B, W]: the correlation at each integer shift
     if near is not None:
         if within is None:
-            raise ShapeError("column_shift: near needs within")
+            raise InputError("column_shift: near needs within")
         shifts = torch.arange(width, dtype=torch.float64, device=a.device)
         centre = near.to(device=a.device, dtype=torch.float64).reshape(-1, 1)
         apart = torch.remainder(shifts - centre + width / 2, width) - width / 2
@@ -101,7 +101,9 @@ def column_shift(
     n_low = max(2, round(low_band * width))
     weight = cross.abs()[:, 1:n_low] * k[1:n_low]
     slope = (weight * residual[:, 1:n_low]).sum(-1) / (weight * k[1:n_low]).sum(-1).clamp_min(1e-30)
-    shift = peak - slope * width / (2 * math.pi)
+    # a fraction of a column; no more than one (the peak of a window need not be the strongest one, whose
+    # leftover phases would otherwise drag the shift out of the window)
+    shift = peak - (slope * width / (2 * math.pi)).clamp(-1.0, 1.0)
     return torch.remainder(shift + width / 2, width) - width / 2
 
 

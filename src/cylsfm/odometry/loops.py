@@ -220,13 +220,13 @@ def _starts(yaw: Tensor, reach: Tensor) -> Tensor:
     the other side of the road is several metres across)."""
     b = yaw.shape[0]
     rot = yaw_matrix(yaw, dtype=torch.float64)
-    out = torch.eye(4, dtype=torch.float64).repeat(b, 17, 1, 1)
+    out = torch.eye(4, dtype=torch.float64, device=yaw.device).repeat(b, 17, 1, 1)
     out[:, :, :3, :3] = rot[:, None]
     k = 1
     for r in (1 / 3, 1.0):
         for a in range(8):
             ang = 2 * math.pi * a / 8
-            offset = torch.tensor([math.sin(ang), 0.0, math.cos(ang)], dtype=torch.float64)
+            offset = torch.tensor([math.sin(ang), 0.0, math.cos(ang)], dtype=torch.float64, device=yaw.device)
             # p_j = R p_i + t: a camera j at c (in i's frame) has t = -R c
             out[:, k, :3, 3] = -(rot @ (offset * r)[None, :, None].expand(b, 3, 1))[..., 0] * reach[:, None]
             k += 1

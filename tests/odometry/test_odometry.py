@@ -4,6 +4,7 @@ depth refinement, metres from the camera height, resuming a killed run, videos, 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import av
@@ -269,6 +270,11 @@ def test_a_ride_that_comes_back_closes_its_loop(ckpt, round_ride, tmp_path):
     again = cylsfm.odometry(round_ride, ckpt, out, settings)
     np.testing.assert_allclose(again.c2w, result.c2w)
     assert "loops" not in again.timings
+    # other loop settings: the loops looked for again on the same tracking (no frame tracked again)
+    strict = replace(settings, loop=LoopSettings(min_gap=15, window=2, span=10, min_inliers=1.0))
+    other = cylsfm.odometry(round_ride, ckpt, out, strict)
+    assert "loops" in other.timings and "pose network" not in other.timings
+    assert other.loops["accepted"] == 0 and other.loops["verified"] == result.loops["verified"]
     # without loops: no pairs, the refined trajectory
     plain = cylsfm.odometry(round_ride, ckpt, tmp_path / "plain", OdometrySettings(
         refine=True, depth_from=round_ride.parent, progress=False, device="cpu", loops=False))  # fmt: skip

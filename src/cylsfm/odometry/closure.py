@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,7 @@ from ..evaluate.pose_metrics import chain_poses
 from ..geometry import invert
 from ..model import Predictor
 from ..model.plan import network_images
+from ..runtime import fingerprint
 from .frames import Ride
 from .loops import Loop, check_loops, loop_candidates, loop_rows, loops_from_rows, verify_loops
 from .posegraph import close_loops
@@ -35,8 +37,10 @@ def ride_loops(
     opt: OdometrySettings,
     dest: Path,
 ) -> list[Loop]:
-    """The ride's loops, found and verified once (then kept in ``state``, saved in ``dest``)."""
-    if state.loops is not None:
+    """The ride's loops, found and verified once for the loop settings of ``opt`` (then kept in ``state``,
+    saved in ``dest``; other loop settings verify again, on the same tracking)."""
+    key = fingerprint(asdict(opt.loop))
+    if state.loops is not None and state.loop_key == key:
         return loops_from_rows(state.loops, state.loop_why)
     t = time.perf_counter()
     steps = keyframe_steps(np.stack(state.refined), tracker.every) if opt.refine else np.stack(state.net)
@@ -60,7 +64,7 @@ def ride_loops(
         pairs, views.__getitem__, depth.__getitem__, tracker.view, opt.loop, mask=tracker.view_mask(), c2w=c2w
     )
     found = check_loops(found, c2w, reach, opt.loop)
-    state.loops, state.loop_why = loop_rows(found), [lp.why for lp in found]
+    state.loops, state.loop_why, state.loop_key = loop_rows(found), [lp.why for lp in found], key
     state.save(dest / STATE_FILE)
     tracker.times.add("loops", t)
     return found

@@ -106,8 +106,7 @@ def odometry(
         "pose_iterations": predictor.pose_iterations,
         "ground_fit": opt.camera_height is not None,  # the depth of every frame is needed for it
         "mask": _file_id(mask_file),
-        "loops": opt.loops,
-        "loop": asdict(opt.loop) if opt.loops else None,
+        "loops": opt.loops,  # the loop settings are the loops' own key (closure.ride_loops)
     }
     run_settings = _settings(ride, checkpoint, plan, opt, fixed)
     (dest := Path(out)).mkdir(parents=True, exist_ok=True)

@@ -58,6 +58,9 @@ class State:
     #: not looked for yet
     loops: np.ndarray | None = None
     loop_why: list[str] = field(default_factory=list)
+    #: the fingerprint of the loop settings the loops were found with: other settings look again (the
+    #: tracking, which they do not change, is kept)
+    loop_key: str = ""
     #: the direction of travel in the panorama (radians; nan: not known yet) and how it was found:
     #: ``(agreement, pairs)`` of :func:`~cylsfm.odometry.mount.mount_yaw` (nan, 0: given or none)
     mount: tuple[float, float, int] = (float("nan"), float("nan"), 0)
@@ -89,6 +92,7 @@ class State:
             "loops": np.zeros((0, LOOP_COLUMNS)) if self.loops is None else self.loops,
             "loops_done": np.array(self.loops is not None),
             "loop_why": np.array(self.loop_why, dtype=str),
+            "loop_key": np.array(self.loop_key),
         }
         buf = io.BytesIO()
         np.savez(buf, **arrays)
@@ -118,6 +122,7 @@ class State:
                 state.reach = [float(r) for r in z["reach"]]
                 state.loops = np.asarray(z["loops"], dtype=np.float64) if bool(z["loops_done"]) else None
                 state.loop_why = [str(w) for w in z["loop_why"]]
+                state.loop_key = str(z["loop_key"])
                 if state.loops is not None and state.loops.shape[1:] != (LOOP_COLUMNS,):
                     return None
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):

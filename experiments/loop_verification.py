@@ -8,8 +8,8 @@ Usage::
 Each ride (``experiments/loops.py``'s rides, generated under ``OUT/data``) runs through ``cylsfm odometry
 --refine --loops`` with the odometry's gates on (drift and heading) but no inlier threshold and no support:
 every candidate pair is aligned both ways and its inlier fraction kept. A pair's relative pose is right
-when it is within 5 degrees and 2 m plus a tenth of the distance of the truth (the translation brought
-to metres by the refined odometry's scale over the ten steps around the first frame), wrong otherwise.
+when it is within 5 degrees and 2 m plus a tenth of the distance of the truth (``loops.judge``), wrong
+otherwise.
 Printed per ride and over all, for the pairs that passed the gates: the inlier fractions of the right and
 of the wrong pairs (quantiles), and how many of each a threshold accepts. The default towns
 are training towns: the threshold is chosen here and measured on the held-out towns by
@@ -22,7 +22,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from loops import each_ride, ride_arguments
+from loops import each_ride, judge, ride_arguments
 
 import cylsfm
 from cylsfm.data.io import read_tum
@@ -39,24 +39,10 @@ def pairs_of(seq: Path, out: Path, checkpoint: str) -> list[dict]:
     settings = OdometrySettings(progress=False, refine=True, loops=True, loop=loop)
     result = cylsfm.odometry(seq, checkpoint, out, settings)
     _, gt = read_tum(seq / "poses.txt")
-    with np.load(out / ".odometry-state.npz", allow_pickle=False) as state:
-        steps = state["refined"]  # T_{k->k+1}, the odometry's unit
     kept = []
     for p in (result.loops or {"pairs": []})["pairs"]:
-        if "drift" in p["why"]:
-            continue
-        i, j = p["i"], p["j"]
-        pose, truth = np.asarray(p["pose"]).reshape(4, 4), np.linalg.inv(gt[j]) @ gt[i]
-        lo, hi = max(0, i - 5), min(len(steps), i + 5)
-        scale = np.linalg.norm(np.diff(gt[lo : hi + 1, :3, 3], axis=0), axis=1).sum() / max(
-            np.linalg.norm(steps[lo:hi, :3, 3], axis=1).sum(), 1e-9
-        )
-        r = pose[:3, :3].T @ truth[:3, :3]
-        p["rotation_error_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
-        p["translation_error_m"] = float(np.linalg.norm(scale * pose[:3, 3] - truth[:3, 3]))
-        p["metres"] = float(np.linalg.norm(gt[i, :3, 3] - gt[j, :3, 3]))
-        p["right"] = p["rotation_error_deg"] < 5 and p["translation_error_m"] < 2 + 0.1 * p["metres"]
-        kept.append(p)
+        if "drift" not in p["why"]:
+            kept.append({**p, **judge(p, gt, out)})
     return kept
 
 

@@ -59,8 +59,11 @@ class LoopSettings:
         window: sequence matching over ``2 * window + 1`` frames around each.
         per_query: the nearest earlier frames each query frame keeps (apart by at least ``window``).
         max_pairs: pairs verified at most in a ride.
-        min_inliers: the smallest inlier fraction (both ways, :func:`~cylsfm.geometry.align.photometric_inliers`
-            insensitive to sampling within a pixel) of an accepted loop.
+        min_inliers: the smallest inlier fraction (both ways, :func:`~cylsfm.geometry.align.photometric_inliers`)
+            of an accepted loop seen in much the same direction (a texture seen again at the same scale).
+        turned_deg, min_inliers_turned: a revisit whose yaw is more than ``turned_deg`` degrees sees each
+            texture from elsewhere (a street driven back on the other side of the road): its inliers are
+            counted insensitive to sampling within a pixel, and at least ``min_inliers_turned`` must fit.
         max_rotation_deg, max_translation: the largest disagreement of the two directions' poses:
             rotation (degrees) and translation (as a fraction of the first frame's median depth).
         max_drift: a loop may move the second frame, relative to the first, by at most this fraction of
@@ -82,7 +85,9 @@ class LoopSettings:
     window: int = 5
     per_query: int = 2
     max_pairs: int = 64
-    min_inliers: float = 0.6
+    min_inliers: float = 0.5
+    turned_deg: float = 90.0
+    min_inliers_turned: float = 0.6
     max_rotation_deg: float = 3.0
     max_translation: float = 0.1
     max_drift: float = 0.15
@@ -103,8 +108,11 @@ class LoopSettings:
                 "loops: yaw_drift_deg and yaw_drift_per_frame_deg must be >= 0, got "
                 f"{self.yaw_drift_deg}, {self.yaw_drift_per_frame_deg}"
             )
-        if not 0 <= self.min_inliers <= 1:
-            raise InputError(f"loops: min_inliers must be in [0, 1], got {self.min_inliers}")
+        if not (0 <= self.min_inliers <= 1 and 0 <= self.min_inliers_turned <= 1):
+            raise InputError(
+                f"loops: min_inliers and min_inliers_turned must be in [0, 1], got {self.min_inliers}, "
+                f"{self.min_inliers_turned}"
+            )
 
 
 @dataclass
@@ -291,16 +299,18 @@ def verify_loops(
             yaw = compass_yaw(img_i, img_j, mask, near=near, within=within)
         reach_i, reach_j = _median_depth(dep_i), _median_depth(dep_j)
         fwd = align(img_i, img_j, dep_i, _starts(yaw, reach_i), camera, config=settings.align, mask=mask)
-        inl_f = photometric_inliers(img_i, img_j, dep_i, fwd.poses, camera, mask=mask)
+        turned = yaw.abs() > math.radians(settings.turned_deg)
+        need = [settings.min_inliers_turned if t else settings.min_inliers for t in turned.tolist()]
+        inl_f = _fit(img_i, img_j, dep_i, fwd.poses, camera, mask, turned)
         ratio = depth_ratio(dep_i, dep_j, fwd.poses, camera)
         # the way back only for the pairs that fit one way (most candidates do not: half the work)
-        go = [b for b in range(len(chunk)) if float(inl_f[b]) >= settings.min_inliers]
+        go = [b for b in range(len(chunk)) if float(inl_f[b]) >= need[b]]
         back_poses, inl_b = {}, {}
         if go:
             sel = torch.tensor(go)
             start = torch.cat((invert(fwd.poses[sel])[:, None], _starts(-yaw[sel], reach_j[sel])), 1)
             back = align(img_j[sel], img_i[sel], dep_j[sel], start, camera, config=settings.align, mask=mask)
-            inl = photometric_inliers(img_j[sel], img_i[sel], dep_j[sel], back.poses, camera, mask=mask)
+            inl = _fit(img_j[sel], img_i[sel], dep_j[sel], back.poses, camera, mask, turned[sel])
             for n_b, b in enumerate(go):
                 back_poses[b], inl_b[b] = back.poses[n_b].numpy(), float(inl[n_b])
         for b, (i, j, dist) in enumerate(chunk):
@@ -316,10 +326,28 @@ def verify_loops(
             trans = float(np.linalg.norm(e[:3, 3]) / float(reach_i[b]))
             inliers = min(float(inl_f[b]), inl_b[b])
             agree = rot <= settings.max_rotation_deg and trans <= settings.max_translation
-            ok = agree and inliers >= settings.min_inliers
+            ok = agree and inliers >= need[b]
             why = "" if ok else ("the two ways disagree" if not agree else "few inliers")
             out.append(Loop(i, j, t_f, float(ratio[b]), inliers, (rot, trans), dist, ok, why))
     return out
+
+
+def _fit(
+    target: Tensor,
+    source: Tensor,
+    depth: Tensor,
+    poses: Tensor,
+    camera: Camera,
+    mask: Tensor | None,
+    turned: Tensor,
+) -> Tensor:
+    """The inlier fractions ``[B]`` at ``poses``: insensitive to sampling within a pixel where ``turned``
+    ``[B]`` (bool), at the sample itself elsewhere."""
+    plain = photometric_inliers(target, source, depth, poses, camera, spread=0.0, mask=mask)
+    if not bool(turned.any()):
+        return plain
+    loose = photometric_inliers(target, source, depth, poses, camera, spread=1.0, mask=mask)
+    return torch.where(turned.to(plain.device), loose, plain)
 
 
 def _odometry_yaw(c2w: np.ndarray, i: int, j: int) -> float:

@@ -34,6 +34,7 @@ import cylsfm
 from cylsfm.data.io import read_tum
 from cylsfm.data.synth import SynthConfig, generate_dataset
 from cylsfm.errors import InputError
+from cylsfm.evaluate.motion import rotation_error_deg
 from cylsfm.evaluate.pose_metrics import trajectory_metrics
 from cylsfm.odometry import OdometrySettings
 
@@ -87,8 +88,7 @@ def judge(pair: dict, gt: np.ndarray, out: Path) -> dict:
     scale = np.linalg.norm(np.diff(gt[lo : hi + 1, :3, 3], axis=0), axis=1).sum() / max(
         np.linalg.norm(steps[lo:hi, :3, 3], axis=1).sum(), 1e-9
     )
-    r = pose[:3, :3].T @ truth[:3, :3]
-    rotation = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+    rotation = float(rotation_error_deg(pose, truth))
     translation = float(np.linalg.norm(scale * pose[:3, 3] - truth[:3, 3]))
     metres = float(np.linalg.norm(gt[i, :3, 3] - gt[j, :3, 3]))
     right = rotation < 5 and translation < 2 + 0.1 * metres

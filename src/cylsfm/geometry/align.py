@@ -406,14 +406,14 @@ def photometric_costs(
     return torch.stack([_cost(lin, k) for lin in lins], 1)
 
 
-def _value_range(grey: Tensor, spread: float, wrap: bool) -> Tensor:
+def _value_range(grey: Tensor, spread: Tensor, wrap: bool) -> Tensor:
     """``[B,1,h,w]`` -> ``[B,2,h,w]``: the lowest and highest value the image takes on the way from each
-    pixel towards its 8 neighbours, ``spread`` (``<= 1``) of the way (linearly interpolated)."""
+    pixel towards its 8 neighbours, ``spread`` ``[B]`` (each ``<= 1``) of the way (linearly interpolated)."""
     x = circular_pad(grey, 1, 1) if wrap else F.pad(grey, (1, 1, 0, 0), mode="replicate")
     x = F.pad(x, (0, 0, 1, 1), mode="replicate")
     h, w = grey.shape[-2:]
     around = torch.stack([x[..., a : a + h, b : b + w] for a in range(3) for b in range(3)], 0)  # [9,B,1,h,w]
-    values = grey + spread * (around - grey)
+    values = grey + spread.to(grey).reshape(-1, 1, 1, 1) * (around - grey)
     return torch.cat((values.amin(0), values.amax(0)), 1)
 
 
@@ -425,7 +425,7 @@ def photometric_inliers(
     camera: Camera,
     threshold: float = 0.25,
     min_gradient: float = 0.5,
-    spread: float = 1.0,
+    spread: float | Tensor = 1.0,
     wrap: bool | None = None,
     mask: Tensor | None = None,
 ) -> Tensor:
@@ -446,16 +446,22 @@ def photometric_inliers(
     Args:
         target, source: images ``[B,3,H,W]``; depth: the targets' depth ``[B,1,H,W]``.
         poses: ``T_{t->s}`` ``[B,4,4]``; camera, wrap, mask: as for :func:`align`.
-        spread: pixels, in ``[0, 1]``.
+        spread: pixels, in ``[0, 1]``: one for every pair, or ``[B]``, one each.
     """
     check_shape(poses, f"{target.shape[0]},4,4", "poses")
-    if not 0 <= spread <= 1:
-        raise InputError(f"photometric_inliers: spread must be in [0, 1], got {spread}")
+    spread = torch.as_tensor(spread, dtype=torch.float32).flatten()
+    if spread.numel() not in (1, target.shape[0]):
+        raise ShapeError(
+            f"photometric_inliers: spread must be one number or [{target.shape[0]}], got {spread.numel()}"
+        )
+    spread = spread.expand(target.shape[0])
+    if not bool(((spread >= 0) & (spread <= 1)).all()):
+        raise InputError(f"photometric_inliers: spread must be in [0, 1], got {spread.tolist()}")
     wrap = camera.wraps if wrap is None else wrap
     lv = _pyramid(target, source, depth, camera, wrap, 1, _mask(mask, target))[0]
     lin = _linearize(lv, poses.double())
     residual = lin.r.abs()
-    if spread:
+    if bool(spread.any()):  # (a spread of 0 leaves the residual as it is)
         points = transform_points(poses.double(), lv.points)
         low_high, _ = sample_image(
             _value_range(lv.source[:, :1], spread, wrap), lv.camera.project(points), wrap

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ..errors import CylsfmError
+from ..evaluate.motion import yaw_angle
 from ..evaluate.pose_metrics import chain_poses
 from ..geometry import invert
 from ..model import Predictor
@@ -86,7 +87,7 @@ def loop_summary_of(loops: list[Loop] | None) -> dict[str, Any] | None:
                 "accepted": lp.accepted,
                 "why": lp.why,
                 "inliers": lp.inliers,
-                "yaw_deg": math.degrees(math.atan2(lp.pose[0, 2], lp.pose[2, 2])),
+                "yaw_deg": math.degrees(float(yaw_angle(lp.pose))),
                 "scale_ratio": lp.ratio,
                 "pose": [round(float(v), 6) for v in lp.pose.ravel()],
             }

@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from ..errors import InputError
+from ..evaluate.motion import yaw_angle
 from ..geometry import Camera, compass_yaw, invert, sample_image, transform_points, yaw_matrix
 from ..geometry.align import AlignConfig, align, photometric_inliers
 from ..geometry.place import place_distance
@@ -299,9 +300,10 @@ def verify_loops(
             yaw = compass_yaw(img_i, img_j, mask, near=near, within=within)
         reach_i, reach_j = _median_depth(dep_i), _median_depth(dep_j)
         fwd = align(img_i, img_j, dep_i, _starts(yaw, reach_i), camera, config=settings.align, mask=mask)
+        # a revisit turned round sees every texture from elsewhere: inliers insensitive to sampling
         turned = yaw.abs() > math.radians(settings.turned_deg)
         need = [settings.min_inliers_turned if t else settings.min_inliers for t in turned.tolist()]
-        inl_f = _fit(img_i, img_j, dep_i, fwd.poses, camera, mask, turned)
+        inl_f = photometric_inliers(img_i, img_j, dep_i, fwd.poses, camera, spread=turned.float(), mask=mask)
         ratio = depth_ratio(dep_i, dep_j, fwd.poses, camera)
         # the way back only for the pairs that fit one way (most candidates do not: half the work)
         go = [b for b in range(len(chunk)) if float(inl_f[b]) >= need[b]]
@@ -310,7 +312,9 @@ def verify_loops(
             sel = torch.tensor(go)
             start = torch.cat((invert(fwd.poses[sel])[:, None], _starts(-yaw[sel], reach_j[sel])), 1)
             back = align(img_j[sel], img_i[sel], dep_j[sel], start, camera, config=settings.align, mask=mask)
-            inl = _fit(img_j[sel], img_i[sel], dep_j[sel], back.poses, camera, mask, turned[sel])
+            inl = photometric_inliers(
+                img_j[sel], img_i[sel], dep_j[sel], back.poses, camera, spread=turned[sel].float(), mask=mask
+            )
             for n_b, b in enumerate(go):
                 back_poses[b], inl_b[b] = back.poses[n_b].numpy(), float(inl[n_b])
         for b, (i, j, dist) in enumerate(chunk):
@@ -332,28 +336,9 @@ def verify_loops(
     return out
 
 
-def _fit(
-    target: Tensor,
-    source: Tensor,
-    depth: Tensor,
-    poses: Tensor,
-    camera: Camera,
-    mask: Tensor | None,
-    turned: Tensor,
-) -> Tensor:
-    """The inlier fractions ``[B]`` at ``poses``: insensitive to sampling within a pixel where ``turned``
-    ``[B]`` (bool), at the sample itself elsewhere."""
-    plain = photometric_inliers(target, source, depth, poses, camera, spread=0.0, mask=mask)
-    if not bool(turned.any()):
-        return plain
-    loose = photometric_inliers(target, source, depth, poses, camera, spread=1.0, mask=mask)
-    return torch.where(turned.to(plain.device), loose, plain)
-
-
 def _odometry_yaw(c2w: np.ndarray, i: int, j: int) -> float:
     """The yaw (radians) of the odometry's ``T_{i->j}`` (as :func:`~cylsfm.geometry.compass_yaw`'s)."""
-    r = invert(c2w[j])[:3, :3] @ c2w[i][:3, :3]
-    return math.atan2(float(r[0, 2]), float(r[2, 2]))
+    return float(yaw_angle(invert(c2w[j]) @ c2w[i]))
 
 
 def _yaw_allowance(settings: LoopSettings, i: int, j: int) -> float:
@@ -386,7 +371,7 @@ def check_loops(loops: list[Loop], c2w: np.ndarray, reach: np.ndarray, settings:
         if np.linalg.norm(centre_loop - centre_odo) > allowed:
             lp.accepted, lp.why = False, "farther than the odometry's drift"
             continue
-        turn = math.atan2(float(lp.pose[0, 2]), float(lp.pose[2, 2])) - _odometry_yaw(c2w, lp.i, lp.j)
+        turn = float(yaw_angle(lp.pose)) - _odometry_yaw(c2w, lp.i, lp.j)
         if abs(math.remainder(turn, 2 * math.pi)) > _yaw_allowance(settings, lp.i, lp.j):
             lp.accepted, lp.why = False, "turned farther than the odometry's drift"
     kept = [lp for lp in loops if lp.accepted]

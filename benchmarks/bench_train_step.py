@@ -67,6 +67,7 @@ def train_step_bench(
     loss: str = "paper",
     fused_adam: bool = True,
     small_maps: bool = True,
+    amp: bool = False,
 ) -> dict:
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -99,9 +100,18 @@ def train_step_bench(
     target = torch.rand(batch, 3, height, width).contiguous(memory_format=fmt)
     sources = torch.rand(batch, 2, 3, height, width)
 
+    # amp: the networks under bf16 autocast, as cylsfm runs them on a CPU with native bf16 (the trainer's
+    # network_precision); the losses, the sampler and the geometry in fp32, on the outputs cast back.
+    def networks(x: torch.Tensor) -> list[torch.Tensor]:
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+            return disp_net(x)
+
     def step() -> None:
-        disps = disp_net(target)
-        pose_vec, masks = pose_net(target, sources)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+            disps = disp_net(target)
+            pose_vec, masks = pose_net(target, sources)
+        disps, pose_vec = [d.float() for d in disps], pose_vec.float()
+        masks = [m.float() for m in masks] if masks is not None else None
         out = view_synthesis_loss(
             target,
             sources,
@@ -125,10 +135,10 @@ def train_step_bench(
     disp_net.eval()
     one = torch.rand(1, 3, height, width).contiguous(memory_format=fmt)
     with torch.inference_mode():
-        t_inf = median_time(lambda: disp_net(one), max(reps, 10), warmup=2)
+        t_inf = median_time(lambda: networks(one), max(reps, 10), warmup=2)
         counter = FlopCounterMode(display=False)
         with counter:
-            disp_net(one)
+            networks(one)
         inf_flops = counter.get_total_flops()
     return {
         "size": f"{width}x{height}",
@@ -138,6 +148,7 @@ def train_step_bench(
         "channels_last": channels_last,
         "fused_adam": fused_adam,
         "small_maps": small_maps,
+        "amp": amp,
         "step_s": t_step,
         "samples_per_s": batch / t_step,
         "step_gflop": flops / 1e9,
@@ -176,6 +187,12 @@ def main(argv: list[str] | None = None) -> None:
         default="on",
         help="tiny deepest feature maps as matrix products (cylindrical rows; 'both' adds rows without)",
     )
+    parser.add_argument(
+        "--amp",
+        choices=["on", "off", "both"],
+        default="both",
+        help="cylindrical rows with the networks in bf16 (on a CPU with native bf16: AVX-512 BF16 or AMX)",
+    )
     parser.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args(argv)
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
@@ -189,8 +206,21 @@ def main(argv: list[str] | None = None) -> None:
         for w, h in sizes:
             for cl in formats:
                 for small in {"on": [True], "off": [False], "both": [False, True]}[args.small_maps]:
-                    job = (w, h, args.batch, args.threads, args.steps, cl, True, args.loss, True, small)
-                    rows.append(pool.apply(_run, (("step", job),)))
+                    for amp in {"on": [True], "off": [False], "both": [False, True]}[args.amp]:
+                        job = (
+                            w,
+                            h,
+                            args.batch,
+                            args.threads,
+                            args.steps,
+                            cl,
+                            True,
+                            args.loss,
+                            True,
+                            small,
+                            amp,
+                        )
+                        rows.append(pool.apply(_run, (("step", job),)))
             if not args.no_pinhole:  # SfMLearner's own configuration: pinhole, contiguous, plain Adam
                 job = (w, h, args.batch, args.threads, args.steps, False, False, args.loss, False)
                 rows.append(pool.apply(_run, (("step", job),)))
@@ -216,6 +246,8 @@ def main(argv: list[str] | None = None) -> None:
             fmt += ", plain Adam (reference)"
         elif not r["small_maps"]:
             fmt += ", small maps by oneDNN"
+        if r["amp"]:
+            fmt += ", bf16 networks"
         ratio = f"{r['step_s'] / reference[r['size']]:.2f}x" if r["size"] in reference else "-"
         print(
             f"| {r['model']} | {r['size']} | {fmt} | {r['step_s']:.3f} | {r['samples_per_s']:.1f} | {r['step_gflop']:.1f} "

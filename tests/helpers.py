@@ -88,3 +88,18 @@ def tiny_training_config(root, **extra):
         "checkpoint_every=0",
     ] + [f"{k}={v}" for k, v in extra.items()]
     return apply_overrides(preset("default"), items)
+
+
+class PoseStub(torch.nn.Module):
+    """A stand-in pose network for :class:`~cylsfm.model.Predictor`: what it reads of a
+    :class:`~cylsfm.nn.PoseModel` (``pairs``, the network ``net`` and ``with_compass``), without a compass.
+    Subclasses define ``forward(target, sources) -> (pose [B,S,6], None)``."""
+
+    pairs = True
+
+    @property
+    def net(self) -> torch.nn.Module:
+        return self
+
+    def with_compass(self, pose: torch.Tensor, target: torch.Tensor, sources: torch.Tensor) -> torch.Tensor:
+        return pose

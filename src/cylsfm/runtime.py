@@ -1,7 +1,10 @@
-"""Where and how jobs run: the device choice and the one progress-bar factory every job uses."""
+"""Where and how jobs run: the device choice, the precision the networks run in, and the one progress-bar
+factory every job uses."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import hashlib
 import json
 import sys
@@ -13,7 +16,16 @@ import torch
 
 from .errors import CylsfmError
 
-__all__ = ["file_id", "fingerprint", "pick_device", "prefers_channels_last", "progress_bar"]
+__all__ = [
+    "autocast_dtype",
+    "file_id",
+    "fingerprint",
+    "native_bf16",
+    "network_precision",
+    "pick_device",
+    "prefers_channels_last",
+    "progress_bar",
+]
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -44,6 +56,48 @@ def prefers_channels_last(device: torch.device) -> bool:
     if device.type != "cpu":
         return device.type == "cuda"
     return torch.backends.cpu.get_cpu_capability().upper().startswith(("AVX512", "AMX"))
+
+
+@functools.cache
+def native_bf16() -> bool:
+    """Whether this CPU computes bf16 in hardware (AVX-512 BF16 or AMX tiles).
+
+    There oneDNN's bf16 convolutions run 1.3-3.6x faster than fp32 (BENCHMARKS.md, "bf16 on the CPU"); on
+    other CPUs bf16 is emulated and slower than fp32, so they keep fp32.
+    """
+    cpu = getattr(torch, "cpu", None)
+    try:
+        return bool(cpu._is_avx512_bf16_supported() or cpu._is_amx_tile_supported())  # type: ignore[union-attr]
+    except (AttributeError, RuntimeError):  # an older or newer torch without these: read the CPU's flags
+        try:
+            flags = Path("/proc/cpuinfo").read_text().split()
+        except OSError:
+            return False
+        return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
+def autocast_dtype(device: torch.device, amp: bool) -> torch.dtype | None:
+    """The dtype the networks run in under ``amp`` on ``device`` (``None``: fp32).
+
+    CUDA: bf16 where the GPU has it, else fp16 (whose overflowing training steps the gradient scaler skips).
+    CPU: bf16 where it is native (:func:`native_bf16`), else fp32. Losses, the sampler and the geometry
+    stay in fp32 in any case (they cast the networks' outputs, or run with autocast off).
+    """
+    if not amp:
+        return None
+    if device.type == "cuda":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    if device.type == "cpu" and native_bf16():
+        return torch.bfloat16
+    return None
+
+
+def network_precision(device: torch.device, dtype: torch.dtype | None) -> contextlib.AbstractContextManager:
+    """The context the networks run in: autocast to ``dtype`` on ``device`` (from :func:`autocast_dtype`),
+    or nothing for fp32."""
+    if dtype is None:
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=dtype)
 
 
 def progress_bar(

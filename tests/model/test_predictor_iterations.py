@@ -15,16 +15,14 @@ from cylsfm.model import Predictor
 from cylsfm.model.build import LoadedModels
 from cylsfm.model.config import preset
 from cylsfm.model.predictor import DEFAULT_POSE_ITERATIONS
-from helpers import untrained_checkpoint
+from helpers import PoseStub, untrained_checkpoint
 
 W, H = 128, 32
 
 
-class _HalfCompassNet(nn.Module):
+class _HalfCompassNet(PoseStub):
     """A pair pose network that reads half of the yaw between the target and each source (the visual
     compass's, no translation): a network that under-reads the motion, each pass by half."""
-
-    pairs = True  # reads frame pairs, as PoseModel.pairs says
 
     def forward(self, target: torch.Tensor, sources: torch.Tensor):
         b, s = sources.shape[:2]
@@ -158,7 +156,7 @@ def _read(target: torch.Tensor, source: torch.Tensor, depth: torch.Tensor) -> to
     return vec
 
 
-class _TurnFirstNet(nn.Module):
+class _TurnFirstNet(PoseStub):
     """A pair pose network that reads the motion exactly from the images, but only the turn while the
     frames are turned by more than 5 degrees: its first pass reads the turn and no translation, the further
     passes read what the warp by the pose so far left."""

@@ -14,11 +14,12 @@ from cylsfm.geometry import CylindricalCamera
 from cylsfm.model import Predictor
 from cylsfm.model.build import LoadedModels
 from cylsfm.model.config import preset
+from helpers import PoseStub
 
 W, H = 128, 32
 
 
-class _HeadingNet(nn.Module):
+class _HeadingNet(PoseStub):
     """A pose network that reads the direction of travel from the brightest column of the target (its
     azimuth ``theta``) and reports ``gain * theta``: right when the motion is straight ahead (azimuth 0),
     pulled towards straight ahead otherwise (``gain < 1``), like a network trained on forward-facing rides."""

@@ -22,6 +22,7 @@ from cylsfm.model import Predictor
 from cylsfm.model.build import LoadedModels
 from cylsfm.model.config import preset
 from cylsfm.odometry import track
+from helpers import PoseStub
 
 W, H, N = 128, 32, 10
 #: The camera's height over the room's floor (the floor is at y = 1.6, the camera at y = 0.1).
@@ -130,7 +131,7 @@ def test_keyframes_align_each_frame_to_its_keyframe(ckpt, ride, tmp_path, monkey
 STEP = 0.3
 
 
-class _StraightAhead(nn.Module):
+class _StraightAhead(PoseStub):
     """Reads ``STEP`` straight ahead (+z) per frame between the target and each source, whatever the
     frames: ``T_tgt_to_src`` of a source ``o`` frames later moves the scene ``o`` steps towards the camera."""
 
@@ -155,8 +156,8 @@ def straight_ahead(monkeypatch):
     cfg.data.width, cfg.data.height = W, H
     models = LoadedModels(_FlatDisp(), _StraightAhead(), cfg, 0, Path("stub"))  # type: ignore[arg-type]
 
-    def load(cls, path, device="auto", pose_iterations=None):
-        return cls(models, "cpu", pose_iterations)
+    def load(cls, path, device="auto", pose_iterations=None, amp=True):
+        return cls(models, "cpu", pose_iterations, amp)
 
     monkeypatch.setattr(Predictor, "from_checkpoint", classmethod(load))
 

@@ -51,6 +51,12 @@ def _common_args(q: argparse.ArgumentParser) -> None:
     q.add_argument("--split-name", default="default", help="split directory under ROOT/splits")
     q.add_argument("--json", help="write the results to this JSON file")
     q.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    q.add_argument(
+        "--no-amp",
+        dest="amp",
+        action="store_false",
+        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
+    )
     q.add_argument("--batch-size", type=int, default=8, help="images per network call (default 8)")
     q.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -126,7 +132,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         from ..model import Predictor
 
         source = Predictor.from_checkpoint(
-            args.checkpoint, args.device, getattr(args, "pose_iterations", None)
+            args.checkpoint, args.device, getattr(args, "pose_iterations", None), args.amp
         )
     report = _depth(args, source) if args.action == "depth" else _pose(args, source)
     if args.json:

@@ -30,6 +30,12 @@ def _depth_source(p: argparse.ArgumentParser) -> None:
     )
     m.add_argument("--no-mask", action="store_true", help="use every pixel, even where mask.png says not to")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N (default auto)")
+    p.add_argument(
+        "--no-amp",
+        dest="amp",
+        action="store_false",
+        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
+    )
 
 
 def _ride_args(c: argparse.ArgumentParser) -> None:
@@ -45,6 +51,12 @@ def _ride_args(c: argparse.ArgumentParser) -> None:
         "--mask", metavar="IMAGE", help="the camera's own mount or helmet (black): no points from it"
     )
     c.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    c.add_argument(
+        "--no-amp",
+        dest="amp",
+        action="store_false",
+        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
+    )
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -164,7 +176,7 @@ def run_export(args: argparse.Namespace) -> int:
     if args.action == "stereo" and _is_video(args.pano):
         return _stereo_video(args)
     mask = False if args.no_mask else args.mask
-    scene = load_scene(args.pano, args.depth, args.checkpoint, args.camera, args.device, mask)
+    scene = load_scene(args.pano, args.depth, args.checkpoint, args.camera, args.device, mask, args.amp)
     if args.camera_height is not None and args.action != "stereo":
         scene = scene.to_metres(args.camera_height)
     if args.action == "mesh":
@@ -233,7 +245,7 @@ def _stereo_video(args: argparse.Namespace) -> int:
     from ..model.checkpoint import checkpoint_id
     from ..runtime import file_id
 
-    scene_of = scene_function(args.pano, args.checkpoint, args.camera, args.device, args.mask)
+    scene_of = scene_function(args.pano, args.checkpoint, args.camera, args.device, args.mask, args.amp)
     identity = {
         "checkpoint": checkpoint_id(args.checkpoint),
         "camera": file_id(args.camera) if args.camera else None,
@@ -257,6 +269,7 @@ def _ride(args: argparse.Namespace) -> int:
         fps=args.fps,
         stride=args.stride,
         device=args.device,
+        amp=args.amp,
         progress=not args.no_progress,
         mask=args.mask,
     )

@@ -82,6 +82,12 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
         "(default: 3 for a pair pose network, 0 for the paper's one-pass network)",
     )
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.add_argument(
+        "--no-amp",
+        dest="amp",
+        action="store_false",
+        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -129,6 +135,7 @@ def run_odometry(args: argparse.Namespace) -> int:
         mount_yaw=_mount(args.mount_yaw),
         batch_size=args.batch_size,
         device=args.device,
+        amp=args.amp,
         progress=not args.no_progress,
         pose_iterations=args.pose_iterations,
         mask=False if args.no_mask else args.mask,

@@ -27,6 +27,12 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-size", type=int, default=8, help="frames per network call (default 8)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument(
+        "--no-amp",
+        dest="amp",
+        action="store_false",
+        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
+    )
+    p.add_argument(
         "--no-png", action="store_true", help="do not write the pictures (input and coloured depth)"
     )
     p.add_argument(
@@ -57,6 +63,7 @@ def run_predict(args: argparse.Namespace) -> int:
         camera=args.camera,
         batch_size=args.batch_size,
         device=args.device,
+        amp=args.amp,
         png=not args.no_png,
         full_resolution=args.full_resolution,
         fps=args.fps,

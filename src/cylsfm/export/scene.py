@@ -166,6 +166,7 @@ def load_scene(
     camera: str | os.PathLike[str] | None = None,
     device: str = "auto",
     mask: str | os.PathLike[str] | bool | None = None,
+    amp: bool = True,
 ) -> Scene:
     """The panorama ``pano`` with its depth from ``depth`` (a ``.npy`` file) or ``checkpoint``.
 
@@ -173,7 +174,7 @@ def load_scene(
     cylinder of +-45 degrees for a depth file, or as ``cylsfm predict`` decides for a checkpoint).
     ``mask``: an image of the panorama's aspect ratio, black on an occluder fixed to the camera, whose
     depth is then unknown (``None``: a dataset frame's sequence ``mask.png`` when there is one; ``False``:
-    none).
+    none). ``amp``: the network in bf16 where it is native (:class:`~cylsfm.model.Predictor`).
 
     Raises:
         CylsfmError: naming the file: neither or both of ``depth`` and ``checkpoint``, an unreadable or
@@ -186,7 +187,7 @@ def load_scene(
     mask_file = _dataset_mask(pano) if mask is None else (None if mask is False else Path(mask))  # type: ignore[arg-type]
     if checkpoint is not None:
         chosen = camera if camera is not None else cam
-        return scene_function(pano, checkpoint, chosen, device, mask_file)(load_image(pano))
+        return scene_function(pano, checkpoint, chosen, device, mask_file, amp)(load_image(pano))
     w, h = image_size(pano)
     cyl = _full_cylinder(w, h, cam, str(camera or pano))
     d = load_depth(Path(depth))  # type: ignore[arg-type]
@@ -226,16 +227,17 @@ def scene_function(
     camera: str | os.PathLike[str] | Camera | None = None,
     device: str = "auto",
     mask: str | os.PathLike[str] | None = None,
+    amp: bool = True,
 ):
     """A function ``rgb uint8 [H,W,3] -> Scene`` predicting frames of input ``where`` (a video's frames)
     with ``checkpoint``; ``camera``: the frames' camera (a camera.json or a camera; ``None``: as ``cylsfm
     predict`` decides); the plan (camera conversion) is made once per frame size. ``mask``: an image of
     the frames' aspect ratio, black on an occluder fixed to the camera: filled in what the network sees,
-    its depth unknown (0)."""
+    its depth unknown (0). ``amp``: as for :func:`load_scene`."""
     from ..model import Predictor
     from ..model.plan import model_vfov_h, network_images, network_mask, plan_input
 
-    predictor = Predictor.from_checkpoint(checkpoint, device)
+    predictor = Predictor.from_checkpoint(checkpoint, device, amp=amp)
     if predictor.fov < 360:
         raise CylsfmError(
             f"{checkpoint}: the model sees {predictor.fov:g}-degree crops; exporting needs 360 degrees"

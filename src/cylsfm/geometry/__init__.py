@@ -4,7 +4,7 @@ Nothing here knows about networks or datasets.
 """
 
 from .cameras import Camera, CameraError, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
-from .compass import column_shift, compass_yaw
+from .compass import column_shift, compass_yaw, compass_yaws
 from .jacobian import projection_jacobian
 from .place import place_descriptor, place_distance
 from .pose import (
@@ -47,6 +47,7 @@ __all__ = [
     "column_difference",
     "column_shift",
     "compass_yaw",
+    "compass_yaws",
     "compose",
     "inverse_warp",
     "invert",

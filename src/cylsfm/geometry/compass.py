@@ -27,7 +27,7 @@ from torch import Tensor
 
 from ..errors import InputError, ShapeError, check_shape
 
-__all__ = ["column_shift", "compass_yaw"]
+__all__ = ["column_shift", "compass_yaw", "compass_yaws"]
 
 
 def _spectrum(x: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -79,23 +79,33 @@ def column_shift(
         or mask.shape[0] not in (1, a.shape[0])
     ):
         raise ShapeError(f"column_shift: mask {tuple(mask.shape)} does not fit images {tuple(a.shape)}")
-    width = a.shape[-1]
-    cross = (_spectrum(a, mask).conj() * _spectrum(b, mask)).sum(
-        1
-    )  # [B, W//2+1]; pure shift: |A|^2 e^{-2pi i k s/W}
+    cross = (_spectrum(a, mask).conj() * _spectrum(b, mask)).sum(1)  # [B, W//2+1]: |A|^2 e^{-2pi i k s/W}
+    return _shift_of(cross, a.shape[-1], low_band, near, within)
+
+
+def _shift_of(
+    cross: Tensor,
+    width: int,
+    low_band: float = 0.125,
+    near: Tensor | None = None,
+    within: float | Tensor | None = None,
+) -> Tensor:
+    """The shifts ``[B]`` (columns) of the cross-power spectra ``cross`` ``[B, W//2+1]`` of panoramas
+    ``width`` wide (see :func:`column_shift`)."""
+    cross = cross.clone()
     cross[:, 0] = 0
     phase = cross / cross.abs().clamp_min(1e-12)
     score = torch.fft.irfft(phase, n=width, dim=-1)  # [B, W]: the correlation at each integer shift
     if near is not None:
         if within is None:
             raise InputError("column_shift: near needs within")
-        shifts = torch.arange(width, dtype=torch.float64, device=a.device)
-        centre = near.to(device=a.device, dtype=torch.float64).reshape(-1, 1)
+        shifts = torch.arange(width, dtype=torch.float64, device=cross.device)
+        centre = near.to(device=cross.device, dtype=torch.float64).reshape(-1, 1)
         apart = torch.remainder(shifts - centre + width / 2, width) - width / 2
-        limit = torch.as_tensor(within, dtype=torch.float64, device=a.device).reshape(-1, 1)
+        limit = torch.as_tensor(within, dtype=torch.float64, device=cross.device).reshape(-1, 1)
         score = torch.where(apart.abs() <= limit.clamp(min=0.5), score, torch.full_like(score, -math.inf))
     peak = score.argmax(-1).to(torch.float64)  # [B]
-    k = torch.arange(cross.shape[-1], dtype=torch.float64, device=a.device)
+    k = torch.arange(cross.shape[-1], dtype=torch.float64, device=cross.device)
     # residual phase after removing the integer shift: -2 pi k d / W, fitted through the origin
     residual = torch.angle(cross * torch.exp(2j * math.pi * k * peak[:, None] / width))
     n_low = max(2, round(low_band * width))
@@ -136,3 +146,34 @@ def compass_yaw(
         within = None if within is None else torch.as_tensor(within, dtype=torch.float64) * per
         near = near.to(torch.float64) * per
     return column_shift(a, b, mask=mask, near=near, within=within) / per
+
+
+def compass_yaws(target: Tensor, sources: Tensor, mask: Tensor | None = None) -> Tensor:
+    """The yaw (radians) from each target to each of its sources: :func:`compass_yaw` of every pair, with
+    each target's spectrum computed once.
+
+    Args:
+        target: panoramas ``[B, C, H, W]``, full 360° width.
+        sources: ``[B, S, C, H, W]``.
+        mask: ``[1, 1, H, W]`` or ``None`` (as for :func:`column_shift`).
+
+    Returns:
+        ``[B, S]`` yaws (float64), equal to ``compass_yaw(target[b], sources[b, s])``.
+
+    >>> t = torch.rand(2, 3, 8, 64)
+    >>> y = compass_yaws(t, torch.stack((torch.roll(t, 3, -1), t), 1))
+    >>> bool(torch.allclose(y, torch.tensor([[3.0, 0.0]] * 2, dtype=torch.float64) * 2 * math.pi / 64))
+    True
+    """
+    check_shape(target, "B,C,H,W", "target")
+    if sources.dim() != 5 or sources.shape[0] != target.shape[0] or sources.shape[2:] != target.shape[1:]:
+        raise ShapeError(
+            f"compass_yaws: sources {tuple(sources.shape)} do not fit target {tuple(target.shape)}"
+        )
+    if mask is not None and (mask.dim() != 4 or mask.shape[0] != 1 or mask.shape[-2:] != target.shape[-2:]):
+        raise ShapeError(f"compass_yaws: mask {tuple(mask.shape)} must be [1,1,H,W] of the images")
+    b, s, width = sources.shape[0], sources.shape[1], target.shape[-1]
+    spec_t = _spectrum(target, mask)  # [B, CH, F]
+    spec_s = _spectrum(sources.flatten(0, 1), mask).view(b, s, *spec_t.shape[1:])
+    cross = (spec_t.conj()[:, None] * spec_s).sum(2).flatten(0, 1)  # [B*S, F]
+    return (_shift_of(cross, width) / (width / (2 * math.pi))).view(b, s)

@@ -121,7 +121,7 @@ class TrainConfig:
     minutes: float | None = None  # wall-clock budget; stops (with a checkpoint) when spent
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda | cuda:N
-    amp: bool = True  # mixed precision where it is safe (CUDA); ignored on the CPU
+    amp: bool = True  # networks in bf16/fp16 where native (CUDA; CPUs with AVX-512 BF16 or AMX), else fp32
     channels_last: bool | None = None  # None: where it is faster (CUDA, AVX-512 CPUs; not AVX2 CPUs)
     log_every: int = 25
     image_every: int = 500

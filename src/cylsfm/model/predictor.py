@@ -12,10 +12,17 @@ left between the target and that warped source, and the two are composed (the cu
 step read in the target's frame). It is the pose network's own
 reading of a smaller residual motion: nothing is optimised and no photometric cost is evaluated
 (RESULTS.md, "The pose network applied again to its own warp").
+
+Precision (``amp``, on by default): where bf16 is native (CUDA GPUs that have it, CPUs with AVX-512 BF16 or
+AMX: :func:`cylsfm.runtime.autocast_dtype`) the networks run in bf16 (copies of their weights cast once; on
+a CUDA GPU without bf16, fp16 autocast); everything else (the visual compass, the warps, depth from
+disparity) stays in fp32 and the outputs are fp32. Elsewhere, or with ``amp=False``, all in fp32.
 """
 
 from __future__ import annotations
 
+import contextlib
+import copy
 import os
 
 import torch
@@ -33,7 +40,7 @@ from ..geometry import (
     roll_columns,
     roll_pose,
 )
-from ..runtime import pick_device
+from ..runtime import autocast_dtype, network_precision, pick_device
 from .build import LoadedModels, load_models
 
 __all__ = ["DEFAULT_POSE_ITERATIONS", "Predictor"]
@@ -52,16 +59,27 @@ class Predictor:
             the first (see the module docstring); ``None``: :data:`DEFAULT_POSE_ITERATIONS` for a pair pose
             network (``antisymmetric``), 0 for the paper's one-pass network, whose per-slot prior would
             add its usual step again at every pass.
+        amp: the networks in bf16 where it is native (see the module docstring); ``False``: fp32.
 
     Raises:
         CylsfmError: ``pose_iterations`` negative, or positive for a one-pass pose network.
     """
 
     def __init__(
-        self, models: LoadedModels, device: torch.device | str = "cpu", pose_iterations: int | None = None
+        self,
+        models: LoadedModels,
+        device: torch.device | str = "cpu",
+        pose_iterations: int | None = None,
+        amp: bool = True,
     ) -> None:
         self.models = models
         self.device = torch.device(device)
+        #: the dtype the networks run in (``None``: fp32)
+        self.dtype = autocast_dtype(self.device, amp)
+        self.disp_net, self.pose_net = models.disp_net, models.pose_net
+        if self.dtype == torch.bfloat16:  # cast once (autocast would cast every weight again at each call)
+            self.disp_net = copy.deepcopy(models.disp_net).to(torch.bfloat16)
+            self.pose_net = copy.deepcopy(models.pose_net).to(torch.bfloat16)
         self.config = models.config
         self.size = (models.config.data.width, models.config.data.height)
         self.fov = models.config.data.fov
@@ -80,10 +98,30 @@ class Predictor:
 
     @classmethod
     def from_checkpoint(
-        cls, path: str | os.PathLike[str], device: str = "auto", pose_iterations: int | None = None
+        cls,
+        path: str | os.PathLike[str],
+        device: str = "auto",
+        pose_iterations: int | None = None,
+        amp: bool = True,
     ) -> Predictor:
         dev = pick_device(device)
-        return cls(load_models(path, dev), dev, pose_iterations)
+        return cls(load_models(path, dev), dev, pose_iterations, amp)
+
+    def _precision(self) -> contextlib.AbstractContextManager:
+        """fp16 autocast (a CUDA GPU without bf16); nothing for bf16 (the networks are bf16 copies) or fp32."""
+        return network_precision(self.device, self.dtype if self.dtype == torch.float16 else None)
+
+    def _disparity(self, images: Tensor) -> Tensor:
+        """The depth network's finest disparity ``[B,1,h,w]`` (fp32) of network inputs ``[B,3,h,w]``."""
+        with self._precision():
+            return self.disp_net(images)[0].float()
+
+    def _pose(self, target: Tensor, sources: Tensor) -> Tensor:
+        """The pose network's ``[B,S,6]`` (fp32) of network inputs; the compass's yaw (if the model has
+        it) read from the fp32 images."""
+        with self._precision():
+            vec, _ = self.pose_net.net(target, sources)
+        return self.pose_net.with_compass(vec.float(), target, sources)
 
     # ------------------------------------------------------------------ input preparation
     # The network was trained on panoramas resized to ``config.data.width x height`` and, for a field of
@@ -130,7 +168,7 @@ class Predictor:
     def disparity(self, images: Tensor, camera: Camera, mask: Tensor | None = None) -> Tensor:
         """Finest-scale disparity ``[B,1,h,w]`` at the network's input size (``mask``: see
         :meth:`prepare`)."""
-        return self.models.disp_net(self.prepare(images, camera, mask))[0].float()
+        return self._disparity(self.prepare(images, camera, mask))
 
     @torch.inference_mode()
     def depth(self, images: Tensor, camera: Camera, mask: Tensor | None = None) -> Tensor:
@@ -154,7 +192,13 @@ class Predictor:
 
     @torch.inference_mode()
     def poses(
-        self, target: Tensor, sources: Tensor, camera: Camera, roll: int = 0, mask: Tensor | None = None
+        self,
+        target: Tensor,
+        sources: Tensor,
+        camera: Camera,
+        roll: int = 0,
+        mask: Tensor | None = None,
+        depth: Tensor | None = None,
     ) -> Tensor:
         """Relative poses ``T_tgt_to_src [B,S,4,4]`` (translation in network depth units).
 
@@ -168,8 +212,12 @@ class Predictor:
         (:func:`~cylsfm.geometry.roll_pose`): e.g. to show it a camera mounted turned as one that faces its
         motion (:func:`cylsfm.odometry.mount.mount_yaw`). ``mask``: see :meth:`prepare`.
 
+        ``depth``: the targets' depth ``[B,1,h,w]`` at the network's input size (of the frames as given,
+        not rolled; e.g. :meth:`depth` of network-size frames), which the further passes then use instead
+        of predicting it again; ``None``: predicted here (once per call).
+
         Raises:
-            CylsfmError: ``roll`` for a model that does not see whole panoramas.
+            CylsfmError: ``roll`` for a model that does not see whole panoramas; ``depth`` of another size.
         """
         if roll and not (self.fov >= 360 and self.wrap):
             raise CylsfmError("turning the frames (roll) needs a model of full panoramas")
@@ -179,28 +227,38 @@ class Predictor:
         if roll:
             tgt = roll_columns(tgt, roll).contiguous(memory_format=torch.channels_last)
             src = roll_columns(src, roll)
-        pose = pose_vec_to_mat(self.models.pose_net(tgt, src)[0].double())
+        pose = pose_vec_to_mat(self._pose(tgt, src).double())
         if self.pose_iterations:
-            pose = self._iterate(tgt, src, pose, self.network_camera(camera))
+            if depth is not None:
+                if depth.shape != (b, 1, *tgt.shape[-2:]):
+                    raise CylsfmError(
+                        f"depth {tuple(depth.shape)} does not fit the network's input {tuple(tgt.shape)}"
+                    )
+                depth = roll_columns(depth.to(self.device).float(), roll) if roll else depth.to(self.device)
+            pose = self._iterate(tgt, src, pose, self.network_camera(camera), depth)
         return roll_pose(pose, -roll, tgt.shape[-1]) if roll else pose
 
-    def _iterate(self, tgt: Tensor, src: Tensor, pose: Tensor, camera: Camera) -> Tensor:
+    def _iterate(
+        self, tgt: Tensor, src: Tensor, pose: Tensor, camera: Camera, depth: Tensor | None = None
+    ) -> Tensor:
         """Refine ``pose [B,S,4,4]`` (float64, ``T_tgt_to_src``) of the network inputs ``tgt [B,3,h,w]``,
         ``src [B,S,3,h,w]`` (``camera``: theirs) by :attr:`pose_iterations` further passes of the pose
         network: each reads the target and every source warped into the target's view by the current pose
-        with the target's predicted depth (the target's own pixels where the warp leaves the source).
+        with the target's depth (``depth [B,1,h,w]``, or predicted here) (the target's own pixels where the
+        warp leaves the source).
 
         The warped source is the view of a virtual camera ``V`` whose pixels see, with the target's depth,
         what the source sees through the current pose: ``T_tgt_to_V = T_cur^-1 T_true``. The network reads
         that step, so the pose is ``T_cur @ step`` (the step is applied in the target's frame, before the
         current pose; for pure yaws, which commute, the order would not show)."""
         b, s = src.shape[:2]
-        depth = 1.0 / self.models.disp_net(tgt)[0].float().clamp(min=1e-6)
+        if depth is None:
+            depth = 1.0 / self._disparity(tgt).clamp(min=1e-6)
         depth, target = depth.repeat_interleave(s, 0), tgt.float().repeat_interleave(s, 0)
         flat = src.flatten(0, 1).float()
         for _ in range(self.pose_iterations):
             warped, valid = inverse_warp(flat, depth, pose.flatten(0, 1).float(), camera)
             warped = torch.where(valid.expand_as(warped), warped, target).to(src.dtype)
-            step = self.models.pose_net(tgt, warped.view(b, s, *warped.shape[1:]))[0]
+            step = self._pose(tgt, warped.view(b, s, *warped.shape[1:]))
             pose = pose @ pose_vec_to_mat(step.double())
         return pose

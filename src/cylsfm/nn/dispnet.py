@@ -108,7 +108,7 @@ class DispNet(nn.Module):
 
         Args:
             image: RGB image ``[B, 3, H, W]`` with values in ``[0, 1]``; it is normalised internally
-                as ``(image - 0.5) / 0.5``.  ``H >= 32``; with ``wrap`` ``W`` must be a multiple of 128,
+                as ``(image - 0.5) / 0.5`` (in the network's dtype: a bf16 network reads fp32 images).  ``H >= 32``; with ``wrap`` ``W`` must be a multiple of 128,
                 otherwise ``W >= 32``.
 
         Returns:
@@ -128,7 +128,7 @@ class DispNet(nn.Module):
 
     def _forward_modules(self, image: torch.Tensor) -> list[torch.Tensor]:
         """Layer by layer through the modules (each wrap-aware layer pads its own input)."""
-        x = (image - 0.5) / 0.5
+        x = (image.to(self.encoder[0][0][0].weight.dtype) - 0.5) / 0.5
         feats = []
         for stage in self.encoder:
             x = stage(x)
@@ -163,7 +163,7 @@ class DispNet(nn.Module):
         fmt = memory_format_of(self.encoder[0][0][0].weight)
         up_pad = max(max(u[0].wrap_left, u[0].wrap_right) for u in self.upconvs)
         first = self.encoder[0][0][0]
-        xp = pad_cat([image], first.pad, memory_format=fmt).sub_(0.5).mul_(2.0)
+        xp = pad_cat([image.to(first.weight.dtype)], first.pad, memory_format=fmt).sub_(0.5).mul_(2.0)
         feats: list[tuple[torch.Tensor, int]] = []
         for j, stage in enumerate(self.encoder):
             conv_a, conv_b = stage[0][0], stage[1][0]

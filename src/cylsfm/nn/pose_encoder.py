@@ -9,6 +9,7 @@ from ..errors import InputError
 from ..geometry.seam import memory_format_of
 from .layers import WrapConv2d
 from .padding import pad_cat, relu_pad
+from .small_maps import conv2d_rows_padded
 
 __all__ = ["Padded", "PoseEncoder", "narrow"]
 
@@ -72,17 +73,66 @@ class PoseEncoder(nn.Module):
         Returns:
             Per level, ``(feature [B,C_l,H_l,W_l + 2 p_l], p_l)`` with ``H_l = ceil(H / 2^(l+1))``.
         """
+        return self._layers(self._input(frames), pads)
+
+    def forward_pairs(self, first: torch.Tensor, second: torch.Tensor, pads: dict[int, int]) -> list[Padded]:
+        """The feature maps of the pairs ``(first, second)`` and of the swapped pairs ``(second, first)``,
+        stacked along the batch: ``forward([cat(first, second), cat(second, first)], pads)`` (two frames),
+        from one copy of the input.
+
+        The first convolution is linear in its two frames, so the swapped pairs' first layer is the same
+        input read by the weights with their two frames' channels swapped: one convolution with both
+        weight sets (twice the output channels) on the pairs as given; its two halves of channels are then
+        stacked along the batch. Equal to :meth:`forward` up to float rounding (tested); about half the
+        memory traffic of building the swapped input.
+
+        Args:
+            first, second: ``[N,3,H,W]`` each (views such as an expanded target are fine).
+            pads: as for :meth:`forward`.
+
+        Returns:
+            As :meth:`forward`, with batch ``2N``: the pairs first, then the swapped ones.
+
+        Raises:
+            InputError: an encoder of more than two frames.
+        """
+        if self.frames != 2:
+            raise InputError(f"PoseEncoder.forward_pairs needs an encoder of 2 frames, not {self.frames}")
+        conv = self.convs[0]
+        c_in = conv.weight.shape[1] // 2
+        w = conv.weight
+        weight = torch.cat((w, torch.cat((w[:, c_in:], w[:, :c_in]), 1)), 0)
+        bias = torch.cat((conv.bias, conv.bias)) if conv.bias is not None else None
+        y = conv2d_rows_padded(self._input([first, second]), weight, bias, conv.stride, conv.pad)
+        c = w.shape[0]
+        y = torch.cat((y[:, :c], y[:, c:]), 0)  # [2N, C, h, w]: the pairs, then the swapped pairs
+        return self._layers(y, pads, first_done=True)
+
+    def _input(self, frames: list[torch.Tensor]) -> torch.Tensor:
+        """``frames`` stacked along channels, normalised, padded for the first convolution, in the
+        first convolution's dtype (a bf16 network reads fp32 images)."""
         convs = self.convs
         fmt = memory_format_of(convs[0].weight)
+        dtype = convs[0].weight.dtype
+        frames = [f.to(dtype) for f in frames]
         if self.wrap:
-            xp = pad_cat(frames, convs[0].pad, memory_format=fmt).sub_(0.5).mul_(2.0)
-        else:  # zeros pad the normalised image, as a convolution's own padding would
-            x = torch.cat(frames, 1).sub(0.5).mul(2.0)
-            xp = pad_cat([x], convs[0].pad, memory_format=fmt, circular=False)
+            return pad_cat(frames, convs[0].pad, memory_format=fmt).sub_(0.5).mul_(2.0)
+        # zeros pad the normalised image, as a convolution's own padding would
+        x = torch.cat(frames, 1).sub(0.5).mul(2.0)
+        return pad_cat([x], convs[0].pad, memory_format=fmt, circular=False)
+
+    def _layers(self, xp: torch.Tensor, pads: dict[int, int], first_done: bool = False) -> list[Padded]:
+        """The convolutions from the padded input ``xp`` (or, ``first_done``, from the first
+        convolution's output before its ReLU)."""
+        convs = self.convs
+        fmt = memory_format_of(convs[0].weight)
         padded: list[Padded] = []
         for j, conv in enumerate(convs):
             pad = max(convs[j + 1].pad if j + 1 < len(convs) else 0, pads.get(j, 0))
-            y = conv.forward_padded(narrow(xp, padded[-1][1] - conv.pad) if padded else xp)
+            if j == 0 and first_done:
+                y = xp.contiguous(memory_format=fmt)
+            else:
+                y = conv.forward_padded(narrow(xp, padded[-1][1] - conv.pad) if padded else xp)
             xp = relu_pad(y, pad, circular=self.wrap)
             padded.append((xp, pad))
         return padded

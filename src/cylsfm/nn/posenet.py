@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from ..errors import InputError, check_shape
-from ..geometry.compass import compass_yaw
+from ..geometry.compass import compass_yaws
 from .explainability import ExplainabilityDecoder
 from .layers import check_input_size, init_weights
 from .pose_encoder import PoseEncoder, narrow
@@ -82,6 +82,22 @@ class PoseExpNet(nn.Module):
         masks = self.explain(features, target) if self.explain is not None else None
         return pose, masks
 
+    def pair_poses(self, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+        """The poses of a one-source network without explainability read on the pairs ``(first,
+        second)`` and on the swapped pairs ``(second, first)``: ``[2N,1,6]`` (the pairs, then the swapped),
+        as ``forward`` of ``cat(first, second)`` with sources ``cat(second, first)`` would give (up to
+        float rounding), from one copy of the input (:meth:`PoseEncoder.forward_pairs`).
+
+        Raises:
+            InputError: a network of more than one source or with explainability.
+        """
+        if self.n_sources != 1 or self.explain is not None:
+            raise InputError("PoseExpNet.pair_poses needs a one-source network without explainability")
+        _check_inputs(first, second[:, None], 1, self.wrap)
+        pads = {len(PoseEncoder.channels) - 1: self.head.conv.pad}
+        features = self.encoder.forward_pairs(first, second, pads)
+        return self.head(narrow(*features[-1]))
+
 
 class PairPoseNet(nn.Module):
     """The antisymmetric pair network: each (target, source) pair and its swap through one
@@ -117,8 +133,7 @@ class PairPoseNet(nn.Module):
         _check_inputs(target, sources, self.n_sources, self.wrap)
         b, s = sources.shape[:2]
         first = target[:, None].expand_as(sources).flatten(0, 1)  # [B*S,3,H,W]
-        second = sources.flatten(0, 1)
-        pairs, _ = self.pair(torch.cat((first, second)), torch.cat((second, first))[:, None])
+        pairs = self.pair.pair_poses(first, sources.flatten(0, 1))
         return (pairs[: b * s] - pairs[b * s :]).view(b, s, 6), None
 
 
@@ -130,9 +145,7 @@ class VisualCompass(nn.Module):
     def forward(self, target: torch.Tensor, sources: torch.Tensor) -> torch.Tensor:
         """``target [B,3,H,W]``, ``sources [B,S,3,H,W]`` (full panoramas) -> ``[B,S,6]``."""
         with torch.no_grad():
-            b, s = sources.shape[:2]
-            tgt = target[:, None].expand_as(sources).flatten(0, 1)
-            yaw = compass_yaw(tgt.float(), sources.flatten(0, 1).float()).view(b, s, 1)
+            yaw = compass_yaws(target.float(), sources.float())[..., None]
         zeros = torch.zeros_like(yaw)
         return torch.cat((zeros, zeros, zeros, zeros, yaw, zeros), -1)
 

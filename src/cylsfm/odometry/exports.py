@@ -48,7 +48,7 @@ def _ride(
     opt = replace(settings or OdometrySettings(), save_depth_maps=True)
     result = odometry(input, checkpoint, work, opt)
     ride = open_ride(input, opt.fps, opt.stride)
-    predictor = Predictor.from_checkpoint(checkpoint, opt.device)
+    predictor = Predictor.from_checkpoint(checkpoint, opt.device, amp=opt.amp)
     if predictor.fov < 360:
         raise CylsfmError(
             f"{checkpoint}: the model sees {predictor.fov:g}-degree crops; exporting a ride needs 360"

@@ -91,7 +91,7 @@ def odometry(
     started = time.perf_counter()
     opt = settings or OdometrySettings()
     ride = open_ride(input, opt.fps, opt.stride)
-    predictor, plan = _model_and_plan(ride, checkpoint, opt.device, opt.pose_iterations, opt.camera)
+    predictor, plan = _model_and_plan(ride, checkpoint, opt, opt.camera)
     net_cam = plan.network_input.resized(*predictor.size)
     mask_file = ride_mask(ride, opt.mask)
     mask = network_mask(mask_file, ride.size, plan, predictor.size) if mask_file is not None else None
@@ -104,6 +104,7 @@ def odometry(
         "keyframe_every": opt.keyframe_every,
         "mount_yaw": opt.mount_yaw,
         "pose_iterations": predictor.pose_iterations,
+        "networks": str(predictor.dtype or torch.float32),  # bf16 where native (amp), else fp32
         "ground_fit": opt.camera_height is not None,  # the depth of every frame is needed for it
         "mask": _file_id(mask_file),
         "loops": opt.loops,  # the loop settings are the loops' own key (closure.ride_loops)
@@ -185,14 +186,12 @@ def _turnable(predictor: Predictor, mount_yaw: float | str) -> bool:
     return turnable
 
 
-def _model_and_plan(
-    ride: Ride, checkpoint: Any, device: str, pose_iterations: int | None, camera: Any
-) -> tuple[Predictor, Any]:
+def _model_and_plan(ride: Ride, checkpoint: Any, opt: OdometrySettings, camera: Any) -> tuple[Predictor, Any]:
     """The predictor (``checkpoint`` itself when it is one) and how the ride's frames reach it."""
     predictor = (
         checkpoint
         if isinstance(checkpoint, Predictor)
-        else Predictor.from_checkpoint(checkpoint, device, pose_iterations)
+        else Predictor.from_checkpoint(checkpoint, opt.device, opt.pose_iterations, opt.amp)
     )
     return predictor, ride_plan(ride, predictor, camera)
 

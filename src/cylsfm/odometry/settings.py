@@ -38,6 +38,8 @@ class OdometrySettings:
             90: to the right, a camera mounted turned left), or ``"auto"``: found from the first frames.
         batch_size: windows and pairs per call.
         device: ``auto``, ``cpu``, ``cuda``, ``cuda:N``.
+        amp: the networks in bf16 where it is native (:class:`~cylsfm.model.Predictor`); ``False``:
+            fp32 (not with a ready predictor).
         align: the refinement's settings.
         progress: show a progress bar.
         pose_iterations: :class:`~cylsfm.model.Predictor`'s further pose passes (``None``: the model's
@@ -66,6 +68,7 @@ class OdometrySettings:
     mount_yaw: float | str = "auto"
     batch_size: int = 8
     device: str = "auto"
+    amp: bool = True
     align: AlignConfig = field(default_factory=AlignConfig)
     progress: bool = True
     pose_iterations: int | None = None

@@ -201,6 +201,11 @@ class Tracker:
         with torch.inference_mode():
             return self.p.depth(images, self.camera, **self.masked).float().clone()
 
+    @property
+    def _own_depth(self) -> bool:
+        """Whether every frame's depth is the network's, at the pose network's input (not ground truth)."""
+        return self.need_depth and self.depth_of is None and self.p.pose_iterations > 0
+
     def _windows(self, last_centre: int) -> None:
         """The pose network on every window whose centre is at most ``last_centre``."""
         k, st = self.k, self.state
@@ -212,9 +217,11 @@ class Tracker:
             src = torch.stack(
                 [torch.stack([self.images[f] for f in range(c - k, c + k + 1) if f != c]) for c in chunk]
             )
+            # the targets' depth, when predicted already, serves the pose network's further passes too
+            depth = torch.stack([self.depths[c] for c in chunk]) if self._own_depth else None
             with torch.inference_mode():
-                rel = self.p.poses(tgt, src, self.camera, self.roll, **self.masked).double().cpu().numpy()
-            st.windows += list(rel)
+                rel = self.p.poses(tgt, src, self.camera, self.roll, depth=depth, **self.masked)
+            st.windows += list(rel.double().cpu().numpy())
         self.times.add("pose network", t)
 
     def _view(self, x: Tensor) -> Tensor:

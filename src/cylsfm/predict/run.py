@@ -72,6 +72,7 @@ def predict(
     camera: str | os.PathLike[str] | Camera | None = None,
     batch_size: int = 8,
     device: str = "auto",
+    amp: bool = True,
     png: bool = True,
     fps: float | None = None,
     progress: bool = True,
@@ -89,6 +90,7 @@ def predict(
             full cylindrical panoramas of the model's aspect ratio.
         batch_size: frames per network call.
         device: ``auto``, ``cpu``, ``cuda``, ``cuda:N`` (ignored for a ready predictor).
+        amp: the networks in bf16 where it is native (:class:`~cylsfm.model.Predictor`); ``False``: fp32.
         png: also write the pictures (input above its coloured depth, at least 1024 wide, a colour scale).
         full_resolution: also write ``FRAME_full.npy`` (and ``FRAME_full.png`` with ``png``), the depth in
             the input's own camera and size (equirectangular input: equirectangular depth, the range).
@@ -119,7 +121,9 @@ def predict(
     sources = discover_inputs(inputs)
     cam, camera_path = _camera_arg(camera)
     predictor = (
-        checkpoint if isinstance(checkpoint, Predictor) else Predictor.from_checkpoint(checkpoint, device)
+        checkpoint
+        if isinstance(checkpoint, Predictor)
+        else Predictor.from_checkpoint(checkpoint, device, amp=amp)
     )
     plan_for = _Plans(predictor, cam, camera_path, Path(mask) if mask is not None else None)
     for source in sources:  # refuse unsuitable inputs (and masks) before writing anything

@@ -37,7 +37,7 @@ from ..errors import CylsfmError
 from ..model.build import build_models, upgrade_pose_state
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.config import TrainConfig, config_from_dict, config_to_dict, resumed_config, save_config
-from ..runtime import prefers_channels_last, progress_bar
+from ..runtime import autocast_dtype, network_precision, prefers_channels_last, progress_bar
 from .distributed import init_distributed
 from .objective import Objective, SfMNet, batch_on
 from .rng import restore_rng, rng_state
@@ -45,7 +45,7 @@ from .sampler import ResumableSampler, SeededDataset
 from .scaffold import SlotPriorScaffold
 from .stopping import CONTINUE, NON_FINITE, OUT_OF_TIME, SIGNALLED, StopRequests, agree
 
-__all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "autocast_dtype", "train"]
+__all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "train"]
 
 
 #: What a run writes into its directory: an existing one means the directory holds a run.
@@ -59,14 +59,6 @@ _MAX_SKIPPED_IN_A_ROW = 50
 
 class NonFiniteLossError(CylsfmError):
     """The loss or the gradients became NaN or infinite; the last good checkpoint is kept."""
-
-
-def autocast_dtype(device: torch.device, amp: bool) -> torch.dtype | None:
-    """The dtype the networks run in under ``amp`` on ``device`` (None: fp32): on CUDA bf16 where the GPU
-    has it, else fp16 (whose overflowing steps the gradient scaler skips); fp32 elsewhere."""
-    if amp and device.type == "cuda":
-        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
-    return None
 
 
 class Trainer:
@@ -244,9 +236,7 @@ class Trainer:
     def compute_loss(self, sample: dict[str, Any]) -> tuple[Tensor, dict[str, Tensor], dict[str, Any]]:
         """The networks on one loader batch and every loss term (see :mod:`cylsfm.train.objective`)."""
         batch = batch_on(sample, self.device, self.cfg.data.fov, self.channels_last)
-        with torch.autocast(
-            self.device.type, dtype=self.amp_dtype or torch.float32, enabled=self.amp_dtype is not None
-        ):
+        with network_precision(self.device, self.amp_dtype):
             outputs = self.net(*batch.network_inputs(), self.step)
         return self.objective(batch, outputs)
 

@@ -8,6 +8,7 @@ SfMLearner's own configuration (pinhole: no wrap, fp32, contiguous memory, eager
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 import tempfile
 from pathlib import Path
@@ -25,6 +26,7 @@ def _median_ms(fn, reps: int) -> float:
 def main(argv: list[str] | None = None) -> None:
     from cylsfm.export.onnx import DepthOutput, export_onnx, onnx_session
     from cylsfm.nn import DispNet
+    from cylsfm.runtime import native_bf16
 
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -50,6 +52,14 @@ def main(argv: list[str] | None = None) -> None:
         model_cl = DepthOutput(DispNet(wrap=True)).eval().to(memory_format=torch.channels_last)
         model_cl.load_state_dict(reference.state_dict())
         rows.append(("cylsfm, PyTorch eager, channels_last", _median_ms(lambda: model_cl(x_cl), args.reps)))
+        if native_bf16():  # as Predictor runs it there: a bf16 copy of the weights, fp32 images in and out
+            model_bf16 = copy.deepcopy(model_cl).to(torch.bfloat16)
+            rows.append(
+                (
+                    "cylsfm, PyTorch eager, channels_last, bf16 network (native bf16: the default)",
+                    _median_ms(lambda: model_bf16(x_cl).float(), args.reps),
+                )
+            )
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "depth.onnx"
         export_onnx(model, x, path)

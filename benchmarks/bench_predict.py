@@ -57,12 +57,12 @@ def _setup(work: Path, frames: int, w: int, h: int) -> tuple[Path, Path]:
 
 
 def worker(video: str, ckpt: str, out: str, batch: int, amp: bool) -> dict:
-    import cylsfm
     from cylsfm.model import Predictor
+    from cylsfm.predict import predict
 
     predictor = Predictor.from_checkpoint(ckpt, "cpu", amp=amp)
     t0 = time.perf_counter()
-    summary = cylsfm.predict(predictor, [video], out, batch_size=batch, png=False, progress=False)
+    summary = predict(predictor, [video], out, batch_size=batch, png=False, progress=False)
     seconds = time.perf_counter() - t0
     frames = sum(1 for _ in Path(out).rglob("*.npy"))
     del summary

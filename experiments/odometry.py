@@ -5,7 +5,7 @@ Usage::
 
     python experiments/odometry.py CHECKPOINT OUT [VARIANT ...]
 
-VARIANT is one of ``refine`` (``cylsfm odometry --refine``), ``refine-kf5`` (``--keyframes 5``),
+VARIANT is one of ``refine`` (``cylsfm odometry --refine``), ``refine-fp32`` (``--refine --no-amp``), ``refine-kf5`` (``--keyframes 5``),
 ``true-depth`` (``--refine --depth-from`` the benchmark: the test of the refinement itself) and
 ``rolled`` / ``rolled-kf5`` (the rides with every frame rolled by a random yaw, as a camera mounted turned;
 ground truth turned with them), ``refine-ahead`` / ``rolled-ahead`` (``--mount-yaw 0``: the pose network
@@ -36,6 +36,7 @@ from cylsfm.odometry import OdometrySettings
 DATA = Path("experiments/out/data")
 VARIANTS = {
     "refine": {"refine": True},
+    "refine-fp32": {"refine": True, "amp": False},
     "refine-kf5": {"refine": True, "keyframe_every": 5},
     "true-depth": {"refine": True, "depth_from": DATA},
     "rolled": {"refine": True, "rolled": True},

@@ -402,3 +402,23 @@ def test_sigterm_stops_a_stereo_video_and_the_same_command_continues(tmp_path, m
 
     a, b = frames(tmp_path / "whole.mp4"), frames(out)
     assert len(a) == len(b) == 6 and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_a_videos_frames_in_one_network_call_equal_one_by_one(tmp_path) -> None:
+    """The stereo export predicts a video's frames in batches (SceneFunction.many): the same scenes as one
+    frame at a time, to float tolerance."""
+    from cylsfm.export.scene import scene_function
+
+    g = torch.Generator().manual_seed(3)
+    coarse = torch.rand(5, 3, 8, 32, generator=g)
+    frames = torch.nn.functional.interpolate(coarse, size=(64, 256), mode="bicubic", align_corners=False)
+    rgbs = list((frames.clamp(0, 1) * 255).round().byte().permute(0, 2, 3, 1).numpy())
+    scene_of = scene_function(
+        tmp_path / "ride.mp4", untrained_checkpoint(tmp_path), None, "cpu", None, amp=False
+    )
+    together = scene_of.many(rgbs)
+    assert len(together) == 5
+    for rgb, scene in zip(rgbs, together, strict=True):
+        alone = scene_of(rgb)
+        np.testing.assert_allclose(scene.depth, alone.depth, rtol=1e-5)
+        assert np.array_equal(scene.image, alone.image) and scene.unit == alone.unit

@@ -44,3 +44,13 @@ def parse_size(text: str) -> tuple[int, int]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"size must look like 512x128, got {text!r}") from None
     return w, h
+
+
+def add_amp_argument(p: argparse.ArgumentParser) -> None:
+    """``--no-amp``: the networks in fp32 (``args.amp`` False); default bf16 where it is native."""
+    p.add_argument(
+        "--no-amp",
+        dest="amp",
+        action="store_false",
+        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
+    )

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from .base import command
+from .base import add_amp_argument, command
 
 
 def _evaluate_args(p: argparse.ArgumentParser) -> None:
@@ -51,12 +51,7 @@ def _common_args(q: argparse.ArgumentParser) -> None:
     q.add_argument("--split-name", default="default", help="split directory under ROOT/splits")
     q.add_argument("--json", help="write the results to this JSON file")
     q.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
-    q.add_argument(
-        "--no-amp",
-        dest="amp",
-        action="store_false",
-        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
-    )
+    add_amp_argument(q)
     q.add_argument("--batch-size", type=int, default=8, help="images per network call (default 8)")
     q.add_argument("--no-progress", action="store_true", help="no progress bars")
 

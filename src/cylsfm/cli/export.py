@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from .base import command
+from .base import add_amp_argument, command
 
 
 def _depth_source(p: argparse.ArgumentParser) -> None:
@@ -30,12 +30,7 @@ def _depth_source(p: argparse.ArgumentParser) -> None:
     )
     m.add_argument("--no-mask", action="store_true", help="use every pixel, even where mask.png says not to")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N (default auto)")
-    p.add_argument(
-        "--no-amp",
-        dest="amp",
-        action="store_false",
-        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
-    )
+    add_amp_argument(p)
 
 
 def _ride_args(c: argparse.ArgumentParser) -> None:
@@ -51,12 +46,7 @@ def _ride_args(c: argparse.ArgumentParser) -> None:
         "--mask", metavar="IMAGE", help="the camera's own mount or helmet (black): no points from it"
     )
     c.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
-    c.add_argument(
-        "--no-amp",
-        dest="amp",
-        action="store_false",
-        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
-    )
+    add_amp_argument(c)
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

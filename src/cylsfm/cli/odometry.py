@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import functools
 
-from .base import command
+from .base import add_amp_argument, command
 
 
 def _odometry_args(p: argparse.ArgumentParser) -> None:
@@ -82,12 +82,7 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
         "(default: 3 for a pair pose network, 0 for the paper's one-pass network)",
     )
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
-    p.add_argument(
-        "--no-amp",
-        dest="amp",
-        action="store_false",
-        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
-    )
+    add_amp_argument(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

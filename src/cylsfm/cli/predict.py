@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from .base import command
+from .base import add_amp_argument, command
 
 
 def _predict_args(p: argparse.ArgumentParser) -> None:
@@ -26,12 +26,7 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--batch-size", type=int, default=8, help="frames per network call (default 8)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
-    p.add_argument(
-        "--no-amp",
-        dest="amp",
-        action="store_false",
-        help="networks in fp32 (default: bf16 where native: CPUs with AVX-512 BF16 or AMX, CUDA GPUs)",
-    )
+    add_amp_argument(p)
     p.add_argument(
         "--no-png", action="store_true", help="do not write the pictures (input and coloured depth)"
     )

@@ -22,6 +22,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -31,7 +32,7 @@ from ..errors import CylsfmError, InputError
 from ..geometry import Camera, CylindricalCamera, load_camera
 from ..geometry.ground import ground_height, metric_scale
 
-__all__ = ["Scene", "load_scene", "scene_function"]
+__all__ = ["Scene", "SceneFunction", "load_scene", "scene_function"]
 
 
 @dataclass(frozen=True)
@@ -228,44 +229,76 @@ def scene_function(
     device: str = "auto",
     mask: str | os.PathLike[str] | None = None,
     amp: bool = True,
-):
-    """A function ``rgb uint8 [H,W,3] -> Scene`` predicting frames of input ``where`` (a video's frames)
-    with ``checkpoint``; ``camera``: the frames' camera (a camera.json or a camera; ``None``: as ``cylsfm
-    predict`` decides); the plan (camera conversion) is made once per frame size. ``mask``: an image of
-    the frames' aspect ratio, black on an occluder fixed to the camera: filled in what the network sees,
-    its depth unknown (0). ``amp``: as for :func:`load_scene`."""
+) -> SceneFunction:
+    """A :class:`SceneFunction` predicting frames of input ``where`` (a video's frames) with ``checkpoint``;
+    ``camera``: the frames' camera (a camera.json or a camera; ``None``: as ``cylsfm predict`` decides).
+    ``mask``: an image of the frames' aspect ratio, black on an occluder fixed to the camera: filled in
+    what the network sees, its depth unknown (0). ``amp``: as for :func:`load_scene`."""
     from ..model import Predictor
-    from ..model.plan import model_vfov_h, network_images, network_mask, plan_input
 
     predictor = Predictor.from_checkpoint(checkpoint, device, amp=amp)
     if predictor.fov < 360:
         raise CylsfmError(
             f"{checkpoint}: the model sees {predictor.fov:g}-degree crops; exporting needs 360 degrees"
         )
-    cam = load_camera(camera) if isinstance(camera, str | os.PathLike) else camera
-    label = str(camera) if isinstance(camera, str | os.PathLike) else str(where)
-    plans: dict[tuple[int, int], tuple[object, torch.Tensor | None]] = {}
+    return SceneFunction(predictor, where, str(checkpoint), camera, mask)
 
-    def scene_of(rgb: np.ndarray, depth: np.ndarray | None = None) -> Scene:
+
+class SceneFunction:
+    """Frames ``rgb uint8 [H,W,3]`` of one input -> their :class:`Scene` with the network's depth: one
+    frame (``scene_of(rgb)``) or several at one network call (:meth:`many`, a video's frames). The plan (the
+    camera conversion) is made once per frame size. Made by :func:`scene_function`."""
+
+    def __init__(
+        self,
+        predictor: Any,
+        where: str | os.PathLike[str],
+        name: str,
+        camera: str | os.PathLike[str] | Camera | None,
+        mask: str | os.PathLike[str] | None,
+    ) -> None:
+        self.predictor, self.where, self.name, self.mask = predictor, where, name, mask
+        self.camera = load_camera(camera) if isinstance(camera, str | os.PathLike) else camera
+        self.label = str(camera) if isinstance(camera, str | os.PathLike) else str(where)
+        self.plans: dict[tuple[int, int], tuple[Any, torch.Tensor | None]] = {}
+
+    def _plan(self, size: tuple[int, int]) -> tuple[Any, torch.Tensor | None]:
+        from ..model.plan import model_vfov_h, network_mask, plan_input
+
+        if size not in self.plans:
+            p = self.predictor
+            plan = plan_input(self.where, size, p, model_vfov_h(p.config), self.camera, self.label)
+            seen = None if self.mask is None else network_mask(self.mask, size, plan, plan.network_input.size)
+            self.plans[size] = (plan, seen)
+        return self.plans[size]
+
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray | None = None) -> Scene:
         """The frame's scene; ``depth``: its depth as this function gave it before (no network then)."""
-        size = (rgb.shape[1], rgb.shape[0])
-        if size not in plans:
-            p = plan_input(where, size, predictor, model_vfov_h(predictor.config), cam, label)
-            m = None if mask is None else network_mask(mask, size, p, p.network_input.size)
-            plans[size] = (p, m)
-        plan, seen = plans[size]
+        return self.many([rgb])[0] if depth is None else self._scenes([rgb], depth[None])[0]
+
+    def many(self, rgbs: list[np.ndarray]) -> list[Scene]:
+        """The scenes of frames ``rgbs`` (of one size: in one network call; else one by one)."""
+        if len({r.shape for r in rgbs}) > 1:
+            return [self(r) for r in rgbs]
+        return self._scenes(rgbs, None)
+
+    def _scenes(self, rgbs: list[np.ndarray], depth: np.ndarray | None) -> list[Scene]:
+        from ..model.plan import network_images
+
+        plan, seen = self._plan((rgbs[0].shape[1], rgbs[0].shape[0]))
         with torch.inference_mode():
-            images = network_images([rgb], plan, predictor.device)  # type: ignore[arg-type]
+            images = network_images(rgbs, plan, self.predictor.device)
             if depth is None:
-                depth = predictor.depth(images, plan.network_input, seen)[0, 0].float().cpu().numpy()  # type: ignore[attr-defined]
+                depth = self.predictor.depth(images, plan.network_input, seen)[:, 0].float().cpu().numpy()
                 if seen is not None:
                     depth = np.where(seen[0, 0].numpy() > 0, depth, np.float32(0))
-        net_cam = plan.network_input  # type: ignore[attr-defined]
+        net_cam = plan.network_input
         assert isinstance(net_cam, CylindricalCamera)
         if not np.isfinite(depth).all():
-            raise CylsfmError(f"{checkpoint}: the network's depth is not finite")
-        image = (images[0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().cpu().numpy()
+            raise CylsfmError(f"{self.name}: the network's depth is not finite")
+        pictures = (images.permute(0, 2, 3, 1).clamp(0, 1) * 255).round().byte().cpu().numpy()
         note = "relative: the network's units (one unknown scale)"
-        return Scene(image, depth, net_cam, "network units", note, source=(rgb, plan.camera))  # type: ignore[attr-defined]
-
-    return scene_of
+        return [
+            Scene(image, d, net_cam, "network units", note, source=(rgb, plan.camera))
+            for image, d, rgb in zip(pictures, depth, rgbs, strict=True)
+        ]

@@ -31,6 +31,9 @@ from .scene import Scene
 
 __all__ = ["StereoOptions", "export_stereo_image", "export_stereo_video"]
 
+#: Frames of a video whose depth one network call predicts.
+DEPTH_BATCH = 8
+
 
 @dataclass(frozen=True)
 class StereoOptions:
@@ -158,10 +161,15 @@ def export_stereo_video(
     )
     stats, stems = _ClipStatistics(options), []
     with progress_bar(desc="depth", unit="frame", enabled=progress) as bar:
+        chunk: list[tuple[str, np.ndarray]] = []
         for stem, rgb in read_frames(source, fps):
-            stats.add(_scene(scene_of, rgb, parts / "depth" / f"{stem}.npy"))
-            stems.append(stem)
-            bar.update(1)
+            chunk.append((stem, rgb))
+            if len(chunk) == DEPTH_BATCH:
+                _depth_pass(scene_of, chunk, parts / "depth", stats, bar)
+                stems += [stem for stem, _ in chunk]
+                chunk = []
+        _depth_pass(scene_of, chunk, parts / "depth", stats, bar)
+        stems += [stem for stem, _ in chunk]
     if not stems:
         raise CylsfmError(f"{video}: no frames")
     factor, note = stats.factor()
@@ -178,6 +186,24 @@ def export_stereo_video(
     _encode(out, rate, [parts / "frames" / f"{stem}.png" for stem in stems])
     shutil.rmtree(parts)
     return out, note
+
+
+def _depth_pass(
+    scene_of: Any, chunk: list[tuple[str, np.ndarray]], folder: Path, stats: Any, bar: Any
+) -> None:
+    """The first pass over frames ``chunk`` (``(stem, rgb)``): each frame's depth, predicted (in one network
+    call when ``scene_of`` has ``many``, as :class:`~cylsfm.export.scene.SceneFunction`) and written once,
+    or read back; the clip's statistics gather them in frame order."""
+    todo = [(stem, rgb) for stem, rgb in chunk if not (folder / f"{stem}.npy").is_file()]
+    many = getattr(scene_of, "many", None)
+    made: dict[str, Scene] = {}
+    if many is not None and len(todo) > 1:
+        made = dict(zip([stem for stem, _ in todo], many([rgb for _, rgb in todo]), strict=True))
+    for stem, rgb in chunk:
+        if stem in made:
+            save_depth(folder / f"{stem}.npy", made[stem].depth)
+        stats.add(made.pop(stem) if stem in made else _scene(scene_of, rgb, folder / f"{stem}.npy"))
+        bar.update(1)
 
 
 def _scene(scene_of: Any, rgb: np.ndarray, depth_file: Path) -> Scene:

@@ -183,7 +183,10 @@ class PoseModel(nn.Module):
         return self.with_compass(pose, target, sources), masks
 
     def with_compass(self, pose: torch.Tensor, target: torch.Tensor, sources: torch.Tensor) -> torch.Tensor:
-        """``pose [B,S,6]`` plus the compass's yaw from ``target`` to ``sources`` (unchanged without it)."""
+        """``pose [B,S,6]`` plus the compass's yaw from ``target`` to ``sources`` (unchanged without it);
+        in fp32 when ``pose`` is bf16 or fp16 (a network under autocast), so that the yaw is not rounded."""
         if self.compass is None:
             return pose
+        if pose.dtype in (torch.bfloat16, torch.float16):
+            pose = pose.float()
         return pose + self.compass(target, sources).to(pose.dtype)

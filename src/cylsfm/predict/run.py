@@ -114,10 +114,7 @@ def predict(
         CylsfmError: an input is missing, unreadable or corrupt, or its camera does not suit the model;
             the message names the file. Every input's cameras are checked before anything is written.
     """
-    if batch_size < 1:
-        raise InputError(f"batch_size must be at least 1, got {batch_size}")
-    if fps is not None and not (math.isfinite(fps) and fps > 0):
-        raise InputError(f"fps must be a positive number, got {fps}")
+    _check_options(batch_size, fps)
     sources = discover_inputs(inputs)
     cam, camera_path = _camera_arg(camera)
     predictor = (
@@ -148,6 +145,13 @@ def predict(
     finally:
         bar.close()
     return summary
+
+
+def _check_options(batch_size: int, fps: float | None) -> None:
+    if batch_size < 1:
+        raise InputError(f"batch_size must be at least 1, got {batch_size}")
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise InputError(f"fps must be a positive number, got {fps}")
 
 
 class _Plans:

@@ -168,3 +168,72 @@ def test_a_point_hidden_in_a_neighbour_is_not_in_its_views(tmp_path):
         frames = {rec.images[el.image_id].name[0] for el in point.track.elements}
         far = np.linalg.norm(point.xyz[[0, 2]]) > 2
         assert frames == ({"a", "c"} if far else {"b"})
+
+
+def _tilted(yaw_deg: float, pitch_deg: float) -> np.ndarray:
+    """Written out: pano_from_view of a view turned right by yaw and tilted up by pitch (y points down)."""
+    a, b = math.radians(yaw_deg), math.radians(pitch_deg)
+    yaw = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    up = np.array([[1, 0, 0], [0, math.cos(b), -math.sin(b)], [0, math.sin(b), math.cos(b)]])
+    return yaw @ up
+
+
+def test_view_rotations_tilt_up_for_positive_pitches():
+    rot = view_rotations(4, (0.0, 30.0))
+    assert rot.shape == (8, 3, 3)
+    np.testing.assert_allclose(rot[:4], view_rotations(4), atol=1e-12)  # the level views first
+    s, c = math.sin(math.radians(30)), math.cos(math.radians(30))
+    np.testing.assert_allclose(rot[4] @ [0, 0, 1], [0, -s, c], atol=1e-12)  # up is -y
+    np.testing.assert_allclose(rot[5] @ [0, 0, 1], [c, -s, 0], atol=1e-12)  # then a quarter turn right
+    for bad in ((), (0.0, 0.0), (95.0,), (math.nan,)):
+        with pytest.raises(Exception, match="pitches"):
+            ViewOptions(pitches=bad)
+
+
+def test_tilted_views_of_an_equirectangular_ride(tmp_path):
+    """Views tilted up and down (the first one tilted too, so the rig's axes are not the panorama's):
+    poses, keypoints and the pixels of the views by the closed forms; a cylinder refuses the tilt."""
+    from cylsfm.errors import CylsfmError
+    from cylsfm.export.colmap import ColmapWriter
+    from cylsfm.geometry import CylindricalCamera, EquirectangularCamera
+
+    eq = EquirectangularCamera.full(128, 64)
+    rgb = np.repeat((2 * np.arange(64, dtype=np.uint8))[:, None, None], 128, 1).repeat(3, 2)  # grey = 2 row
+    cyl = CylindricalCamera.full(64, 16)
+    view = 33  # odd: the centre pixel looks straight along the view's axis
+    opts = ViewOptions(yaws=2, pitches=(30.0, -60.0), width=view, points_per_frame=64, image_format="png")
+    writer = ColmapWriter(tmp_path, opts)
+    rng = np.random.default_rng(0)
+    poses = []
+    for name in ("a", "b"):
+        c2w = np.eye(4)
+        c2w[:3, :3] = _tilted(rng.uniform(-180, 180), rng.uniform(-10, 10))
+        c2w[:3, 3] = rng.normal(size=3)
+        poses.append(c2w)
+        writer.add(name, rgb, eq, c2w, np.full((16, 64), 4.0, np.float32), cyl)
+    writer.finish()
+    rec = pycolmap.Reconstruction(str(tmp_path / "sparse" / "0"))
+    assert rec.num_images() == 8 and rec.num_points3D() > 50
+    angles = [(0, 30), (180, 30), (0, -60), (180, -60)]
+    for image in rec.images.values():
+        j, k = "ab".index(image.name[0]), int(image.name[2:4])
+        world_from_view = poses[j].copy()
+        world_from_view[:3, :3] = world_from_view[:3, :3] @ _tilted(*angles[k])
+        np.testing.assert_allclose(
+            image.cam_from_world().matrix(), np.linalg.inv(world_from_view)[:3], atol=1e-9
+        )
+        for p in image.points2D:
+            if p.has_point3D():
+                xy = image.project_point(rec.points3D[p.point3D_id].xyz)
+                assert np.abs(xy - p.xy).max() < 1e-6
+    from PIL import Image
+
+    for k, (_, pitch) in enumerate(angles):  # the centre pixel sees elevation -pitch (rows: y_e)
+        centre = np.asarray(Image.open(tmp_path / "images" / f"a_{k:02d}.png"))[view // 2, view // 2, 0]
+        y_e = 64 * (math.radians(-pitch) / math.pi + 0.5) - 0.5
+        assert abs(int(centre) - 2 * y_e) <= 1
+    refusing = ColmapWriter(tmp_path / "cyl", opts)
+    with pytest.raises(CylsfmError, match=r"tilted by 30 degrees.*equirectangular"):
+        refusing.add(
+            "a", np.zeros((16, 64, 3), np.uint8), cyl, np.eye(4), np.full((16, 64), 4.0, np.float32), cyl
+        )

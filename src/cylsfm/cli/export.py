@@ -58,8 +58,14 @@ def _colmap_args(sub) -> None:
     )
     _ride_args(c)
     c.add_argument("out", metavar="OUT", help="the folder to write: images/, sparse/0/, transforms.json")
+    c.add_argument("--views", type=int, default=4, help="pinhole views per pitch, turned evenly (default 4)")
     c.add_argument(
-        "--views", type=int, default=4, help="pinhole views per panorama, turned evenly (default 4)"
+        "--pitches",
+        type=_degrees_list,
+        default=(0.0,),
+        metavar="DEG[,DEG...]",
+        help="the views' tilts in degrees, positive up, each with --views views (default 0: level); "
+        "tilts beyond the frames' field of view need equirectangular input, e.g. 0,-45,45",
     )
     c.add_argument("--fov", type=float, default=90.0, help="the views' horizontal field of view (default 90)")
     c.add_argument("--view-size", type=int, default=512, help="the views' width and height (default 512)")
@@ -76,6 +82,13 @@ def _colmap_args(sub) -> None:
         "out", metavar="OUT.rrd", help="the recording to write (the odometry goes to OUT.rrd.odometry/)"
     )
     r.add_argument("--points-per-frame", type=int, default=4000, help="3D points from each depth map")
+
+
+def _degrees_list(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected degrees separated by commas, got {text!r}") from None
 
 
 def _export_args(p: argparse.ArgumentParser) -> None:
@@ -269,6 +282,7 @@ def _ride(args: argparse.Namespace) -> int:
         return 0
     views = ViewOptions(
         yaws=args.views,
+        pitches=args.pitches,
         fov=args.fov,
         width=args.view_size,
         points_per_frame=args.points_per_frame,

@@ -2,11 +2,12 @@
 posed by the ride's trajectory, with 3D points from the depth, for Gaussian splatting and NeRF trainers.
 
 Each panorama is seen by ``yaws`` virtual pinhole cameras turned evenly about the vertical axis (all with
-the same centre; field of view ``fov``), rendered from the panorama itself at its own resolution. In COLMAP
-(4.x: images belong to frames and rigs) the ``yaws`` cameras form one rig whose reference sensor is the view
-straight ahead; every panorama is a frame of that rig, posed by ``rig_from_world`` (the inverse of the
-trajectory's camera-to-world pose: the camera axes are the same, x right, y down, z forward), and each of its
-views an image. Points: a regular sample of each panorama's depth (``points_per_frame``), back-projected by
+the same centre; field of view ``fov``), at each of the ``pitches`` (tilted up or down: an equirectangular
+input sees the whole sphere, so its views may look at the sky and the ground), rendered from the panorama
+itself at its own resolution. In COLMAP (4.x: images belong to frames and rigs) the views form one rig whose
+reference sensor is the first view (the first pitch, straight ahead); every panorama is a frame of that rig,
+posed by ``rig_from_world`` (from the trajectory's camera-to-world pose: the camera axes are the same, x
+right, y down, z forward), and each of its views an image. Points: a regular sample of each panorama's depth (``points_per_frame``), back-projected by
 the panorama's own camera model into the world, coloured by the panorama, each with the track of the views
 that see it (of its panorama and of its neighbours along the ride, where their depth agrees) and the
 keypoint where it projects.
@@ -34,7 +35,7 @@ from PIL import Image
 
 from ..atomic import atomic_write_bytes, atomic_write_text
 from ..errors import CylsfmError, InputError
-from ..geometry import Camera, PinholeCamera, rotation_y, sample_image
+from ..geometry import Camera, PinholeCamera, rotation_x, rotation_y, sample_image
 from .mesh import Mesh, write_ply
 
 __all__ = ["ColmapWriter", "ViewOptions", "render_view", "view_rotations"]
@@ -45,7 +46,9 @@ class ViewOptions:
     """The virtual pinhole views of each panorama and what is written.
 
     Attributes:
-        yaws: views per panorama, turned evenly about the vertical axis (the first straight ahead).
+        yaws: views per pitch, turned evenly about the vertical axis (the first straight ahead).
+        pitches: the views' tilts in degrees (positive: up), each with ``yaws`` views; ``(0,)``: level
+            views only. Views tilted beyond what the panorama sees are refused (:meth:`ColmapWriter.add`).
         fov: each view's horizontal field of view in degrees (below 180).
         width, height: each view's size in pixels (``height`` ``None``: square).
         points_per_frame: 3D points sampled from each panorama's depth (at most).
@@ -56,6 +59,7 @@ class ViewOptions:
     """
 
     yaws: int = 4
+    pitches: tuple[float, ...] = (0.0,)
     fov: float = 90.0
     width: int = 512
     height: int | None = None
@@ -68,6 +72,10 @@ class ViewOptions:
     def __post_init__(self) -> None:
         if self.yaws < 1:
             raise InputError(f"yaws must be at least 1, got {self.yaws}")
+        if not self.pitches or not all(math.isfinite(p) and -90 <= p <= 90 for p in self.pitches):
+            raise InputError(f"pitches must be degrees within [-90, 90], got {list(self.pitches)}")
+        if len(set(self.pitches)) != len(self.pitches):
+            raise InputError(f"pitches must differ from each other, got {list(self.pitches)}")
         if not 0 < self.fov < 180:
             raise InputError(f"the views' field of view must be between 0 and 180 degrees, got {self.fov}")
         if self.width < 8 or (self.height is not None and self.height < 8):
@@ -83,10 +91,14 @@ class ViewOptions:
         return PinholeCamera.from_fov(self.width, self.height or self.width, self.fov)
 
 
-def view_rotations(yaws: int) -> np.ndarray:
-    """``[K,3,3]`` rotations ``pano_from_view`` of ``K`` views turned evenly about the vertical axis, the
-    first straight ahead: view ``k`` looks along azimuth ``2 pi k / K`` (``atan2(x, z)``, to the right)."""
-    return rotation_y(2 * math.pi * np.arange(yaws) / yaws)
+def view_rotations(yaws: int, pitches: tuple[float, ...] = (0.0,)) -> np.ndarray:
+    """``[P*K,3,3]`` rotations ``pano_from_view`` of ``K = yaws`` views turned evenly about the vertical
+    axis at each of the ``P`` pitches (degrees, positive up), pitch by pitch: view ``p*K + k`` looks along
+    azimuth ``2 pi k / K`` (``atan2(x, z)``, to the right), tilted up by ``pitches[p]``
+    (``rotation_y(azimuth) @ rotation_x(pitch)``: the views' horizon stays level)."""
+    yaw = rotation_y(2 * math.pi * np.arange(yaws) / yaws)  # [K,3,3]
+    tilt = rotation_x(np.radians(np.asarray(pitches, dtype=np.float64)))  # [P,3,3]
+    return np.einsum("kij,pjl->pkil", yaw, tilt).reshape(-1, 3, 3)
 
 
 def render_view(
@@ -141,8 +153,9 @@ class ColmapWriter:
         self.out = Path(out)
         self.options = options or ViewOptions()
         self.view = self.options.camera
-        self.rotations = view_rotations(self.options.yaws)
+        self.rotations = view_rotations(self.options.yaws, self.options.pitches)
         self.panoramas: list[_Panorama] = []
+        self._covered: set[tuple] = set()  # the source cameras checked to see every view
 
     def add(
         self,
@@ -166,6 +179,7 @@ class ColmapWriter:
         h, w = depth.shape
         if (w, h) != depth_camera.size:
             raise CylsfmError(f"depth of {w}x{h} for a camera of {depth_camera.width}x{depth_camera.height}")
+        self._check_coverage(camera)
         names = []
         for k, rot in enumerate(self.rotations):
             names.append(f"{name}_{k:02d}.{self.options.image_format}")
@@ -173,6 +187,28 @@ class ColmapWriter:
         points, colours = self._sample(rgb, camera, depth, depth_camera, mask)
         pose = np.asarray(c2w, dtype=np.float64)
         self.panoramas.append(_Panorama(names, pose, depth.astype(np.float32), depth_camera, points, colours))
+
+    def _check_coverage(self, camera: Camera) -> None:
+        """Refuse tilted views that reach beyond what ``camera`` sees (black in the images)."""
+        key = (camera.model, camera.size, float(camera.fy), float(camera.cy))
+        if key in self._covered or all(p == 0 for p in self.options.pitches):
+            return
+        rays = self.view.rays(self.view.pixel_grid(1, dtype=torch.float64))  # [1,3,h,w]
+        for rot, pitch in zip(
+            self.rotations, np.repeat(self.options.pitches, self.options.yaws), strict=True
+        ):
+            if pitch == 0:
+                continue
+            turned = torch.einsum("ij,bjhw->bihw", torch.from_numpy(rot), rays)
+            v = camera.project(turned)[:, 1]
+            inside = camera.projectable(turned)[:, 0] & (v >= -0.5) & (v <= camera.height - 0.5)
+            if float(inside.double().mean()) < 0.999:
+                raise CylsfmError(
+                    f"views tilted by {pitch:g} degrees reach beyond what the {camera.width}x{camera.height} "
+                    f"{camera.model} frames see (they would be black there): tilted views need an "
+                    "equirectangular input, or smaller --pitches or --fov"
+                )
+        self._covered.add(key)
 
     def _sample(
         self,
@@ -260,7 +296,7 @@ class ColmapWriter:
 
     def _reconstruction(self):
         """The COLMAP model: the rig of views, a frame a panorama, its images and the points with tracks."""
-        pc, yaws = self.pc, self.options.yaws
+        pc, yaws = self.pc, len(self.rotations)
         rec = pc.Reconstruction()
         self._add_rig(rec)
         worlds = [p.points @ p.world_from_pano[:3, :3].T + p.world_from_pano[:3, 3] for p in self.panoramas]
@@ -273,8 +309,10 @@ class ColmapWriter:
                     for p, point in zip(which, xy, strict=True):
                         tracks[i][p].append((j * yaws + k + 1, len(keypoints[k])))
                         keypoints[k].append(point)
+            world_from_rig = pano.world_from_pano.copy()  # the rig's axes: the first view's
+            world_from_rig[:3, :3] = world_from_rig[:3, :3] @ self.rotations[0]
             frame = pc.Frame(
-                frame_id=j + 1, rig_id=1, rig_from_world=pc.Rigid3d(np.linalg.inv(pano.world_from_pano)[:3])
+                frame_id=j + 1, rig_id=1, rig_from_world=pc.Rigid3d(np.linalg.inv(world_from_rig)[:3])
             )
             for k in range(yaws):
                 sensor = pc.sensor_t(type=pc.SensorType.CAMERA, id=k + 1)
@@ -304,8 +342,8 @@ class ColmapWriter:
             sensor = pc.sensor_t(type=pc.SensorType.CAMERA, id=k + 1)
             if k == 0:
                 rig.add_ref_sensor(sensor)
-            else:  # view_from_pano: the rig's frame is the panorama's (the first view's)
-                rig.add_sensor(sensor, pc.Rigid3d(np.hstack([rot.T, np.zeros((3, 1))])))
+            else:  # view_from_rig = view_from_pano @ pano_from_rig (the rig's axes: the first view's)
+                rig.add_sensor(sensor, pc.Rigid3d(np.hstack([rot.T @ self.rotations[0], np.zeros((3, 1))])))
         rec.add_rig(rig)
 
     def _track(self, elements: list[tuple[int, int]]):

@@ -10,6 +10,7 @@ one machine state: fp32 and, where the CPU has native bf16, the networks in bf16
     python benchmarks/bench_odometry.py                              # 1000 frames at 512x128
     python benchmarks/bench_odometry.py --frames 200 --size 256x64   # a quick look
     python benchmarks/bench_odometry.py --frames 200 --before /tmp/before
+    python benchmarks/bench_odometry.py --before /tmp/before --runs passes   # the further passes only
 """
 
 from __future__ import annotations
@@ -40,6 +41,11 @@ def main() -> None:
     ap.add_argument("--keyframes", type=int, default=1, help="--keyframes of the refined run")
     ap.add_argument("--work", default=None, help="folder for the ride (kept; default: a temporary one)")
     ap.add_argument("--before", help="a checkout of the earlier code to measure beside today's (fp32)")
+    ap.add_argument(
+        "--runs",
+        default="one-pass,passes,refine",
+        help="which runs, comma-separated: one-pass, passes (the default 3 further passes), refine",
+    )
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -71,11 +77,17 @@ def main() -> None:
     codes = [("before", Path(args.before).resolve())] if args.before else []
     codes.append(("today", here))
     runs = {
-        "pose network alone, one pass (--pose-iterations 0)": {"pose_iterations": 0},
-        "pose network alone (default: 3 further passes)": {},
-        f"--refine --keyframes {args.keyframes}": {"refine": True, "keyframe_every": args.keyframes},
+        "one-pass": ("pose network alone, one pass (--pose-iterations 0)", {"pose_iterations": 0}),
+        "passes": ("pose network alone (default: 3 further passes)", {}),
+        "refine": (
+            f"--refine --keyframes {args.keyframes}",
+            {"refine": True, "keyframe_every": args.keyframes},
+        ),
     }
-    for name, opts in runs.items():
+    chosen = args.runs.split(",")
+    if unknown := set(chosen) - set(runs):
+        ap.error(f"--runs: unknown {sorted(unknown)}; choose from {sorted(runs)}")
+    for name, opts in (runs[r] for r in chosen):
         for code_name, code in codes:
             for amp in (False, True) if code_name == "today" else (False,):
                 job = json.dumps(

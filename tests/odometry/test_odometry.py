@@ -279,3 +279,22 @@ def test_a_ride_that_comes_back_closes_its_loop(ckpt, round_ride, tmp_path):
     plain = cylsfm.odometry(round_ride, ckpt, tmp_path / "plain", OdometrySettings(
         refine=True, depth_from=round_ride.parent, progress=False, device="cpu", loops=False))  # fmt: skip
     assert plain.loops is None and "loops closed" not in plain.metrics
+
+
+def test_the_targets_depth_handed_to_the_passes_gives_the_same_trajectory(ckpt, ride, tmp_path, monkeypatch):
+    """The tracker hands the pose network's further passes the targets' depth it has already predicted (in
+    the search for the direction of travel and in every window): the same trajectory as passes that
+    predict that depth again."""
+    settings = OdometrySettings(save_depth_maps=True, device="cpu", progress=False, amp=False)
+    fast = cylsfm.odometry(ride, ckpt, tmp_path / "fast", settings)
+    given = []
+    poses = odometry_run.Predictor.poses
+
+    def plain(self, *args, depth=None, **kwargs):
+        given.append(depth is not None)
+        return poses(self, *args, **kwargs)
+
+    monkeypatch.setattr(odometry_run.Predictor, "poses", plain)
+    slow = cylsfm.odometry(ride, ckpt, tmp_path / "slow", settings)
+    assert len(given) >= 2 and all(given)  # the search and the windows were handed it
+    np.testing.assert_allclose(fast.c2w, slow.c2w, atol=1e-5)

@@ -185,10 +185,13 @@ class Tracker:
             return
         if depth is None:
             depth = self._depth(indices, images)
+        # the network's own depth of the targets serves the pose network's further passes (not turned yet)
+        own = self.depth_of is None and self.p.pose_iterations > 0
         with torch.inference_mode():
             tgt = images[k : images.shape[0] - k]
             src = torch.stack([images[o : o + len(tgt)] for o in range(2 * k + 1) if o != k], 1)
-            rel = self.p.poses(tgt, src, self.camera, **self.masked)
+            given = depth[k : images.shape[0] - k] if own else None
+            rel = self.p.poses(tgt, src, self.camera, depth=given, **self.masked)
         length = float(rel[:, k, :3, 3].norm(dim=-1).median())  # the step after the target
         found = mount_yaw(images, depth, self.view, length, self.align_config, mask=self.mask)
         if found is not None:

@@ -1,5 +1,6 @@
 """Loop closure's parts: candidates from the place descriptors, verification by direct alignment (a revisit
-at another heading accepted with its yaw, a planted false loop rejected), the checks against the odometry,
+at another heading accepted with its yaw, planted false loops rejected: by the verification alone, and
+by the odometry), the checks against the odometry,
 and the pose graph (a known loop corrects an injected drift; a wrong loop among right ones is dropped)."""
 
 from __future__ import annotations
@@ -67,6 +68,25 @@ def test_a_revisit_at_another_heading_is_accepted_and_a_planted_false_loop_is_no
     checked = check_loops([revisit, false], c2w, reach, LoopSettings(support=1))
     assert checked[0].accepted
     assert not checked[1].accepted and checked[1].why in ("few inliers", "farther than the odometry's drift")
+
+
+def test_a_planted_false_loop_is_rejected_by_the_verification_alone(streets):
+    """No odometry to gate it: a place that never was (the first frame's own colours and depth, its columns
+    in blocks of 16 shuffled) is rejected by the compass and the direct alignment, where the same frame
+    turned is accepted."""
+    images, depths, cam = streets
+    perm = torch.randperm(8, generator=torch.Generator().manual_seed(0))
+
+    def scramble(x):
+        return torch.cat([x[..., 16 * p : 16 * p + 16] for p in perm], -1)
+
+    frames = {0: images[0], 1: scramble(images[0]), 2: roll_columns(images[0], 40, axis=-1)}
+    depth = {0: depths[0], 1: scramble(depths[0]), 2: roll_columns(depths[0], 40, axis=-1)}
+    false, revisit = verify_loops(
+        [(0, 1, 0.1), (0, 2, 0.1)], frames.__getitem__, depth.__getitem__, cam, LoopSettings()
+    )
+    assert not false.accepted and false.why == "few inliers"
+    assert revisit.accepted and false.inliers < LoopSettings().min_inliers < revisit.inliers
 
 
 def test_a_revisit_a_metre_away_measures_the_step(streets):

@@ -217,6 +217,20 @@ def test_documented_commands_run(document, tmp_path, monkeypatch, capsys):
     ran, skipped = run_document(document, tmp_path, capsys)
     assert ran >= 5, f"{document}: only {ran} commands ran"
     assert all(": " in s for s in skipped)
+    if document == "README.md":  # the video-to-splat recipe, up to the model the splat trainer reads
+        _check_splat_model(tmp_path / "my_splat")
+
+
+def _check_splat_model(out: Path) -> None:
+    """What a splat trainer reads: a COLMAP model (read back by pycolmap) whose images are the files of
+    ``images/`` and of nerfstudio's ``transforms.json``, and points for the splats' start."""
+    pycolmap = pytest.importorskip("pycolmap")
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    frames = json.loads((out / "transforms.json").read_text())["frames"]
+    names = {image.name for image in rec.images.values()}
+    assert len(names) == len(frames) > 0 and rec.num_points3D() > 0
+    assert names == {f["file_path"].removeprefix("images/") for f in frames}
+    assert all((out / "images" / name).is_file() for name in names)
 
 
 def test_substitution_and_parsing():

@@ -77,8 +77,12 @@ def test_training_writes_config_logs_and_checkpoints(tiny_data, tmp_path):
     }
     trained = _weights(run)
     assert initial.keys() == trained.keys()
-    assert all(not torch.equal(initial[k], trained[k]) for k in trained), [
-        k for k in trained if torch.equal(initial[k], trained[k])
+    # (but the pair network's last bias: it cancels in g(t, s) - g(s, t), its gradient is zero but for
+    # rounding, which bf16 may not leave)
+    dead = {"pose.net.pair.head.conv.bias"}
+    assert dead <= trained.keys()
+    assert all(not torch.equal(initial[k], trained[k]) for k in trained.keys() - dead), [
+        k for k in trained.keys() - dead if torch.equal(initial[k], trained[k])
     ]
 
 

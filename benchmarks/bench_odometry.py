@@ -29,9 +29,8 @@ import torch
 
 import cylsfm
 from cylsfm.data.synth import generate_dataset
-from cylsfm.model import build_models, preset, save_checkpoint
-from cylsfm.model.config import config_to_dict
 from cylsfm.odometry import OdometrySettings
+from untrained import untrained_checkpoint
 
 
 def main() -> None:
@@ -58,20 +57,7 @@ def main() -> None:
         generate_dataset(
             data, sequences=1, frames=args.frames, width=w, height=h, seed=0, progress=True, overwrite=True
         )
-    cfg = preset("default")
-    cfg.data.width, cfg.data.height = w, h
-    torch.manual_seed(0)
-    disp, pose = build_models(cfg)
-    ckpt = work / "model.pt"
-    save_checkpoint(
-        ckpt,
-        {
-            "config": config_to_dict(cfg),
-            "step": 0,
-            "disp_net": disp.state_dict(),
-            "pose_net": pose.state_dict(),
-        },
-    )
+    ckpt = untrained_checkpoint(work / "model.pt", w, h)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; {args.frames} frames at {w}x{h}")
     here = Path(__file__).resolve().parents[1]
     codes = [("before", Path(args.before).resolve())] if args.before else []

@@ -22,13 +22,11 @@ from pathlib import Path
 
 def _setup(work: Path, frames: int, w: int, h: int) -> tuple[Path, Path]:
     import numpy as np
-    import torch
     from PIL import Image
 
     from cylsfm.data.synth import generate_dataset
     from cylsfm.data.video import VideoWriter
-    from cylsfm.model import build_models, preset, save_checkpoint
-    from cylsfm.model.config import config_to_dict
+    from untrained import untrained_checkpoint
 
     data = work / "ride"
     generate_dataset(
@@ -39,21 +37,7 @@ def _setup(work: Path, frames: int, w: int, h: int) -> tuple[Path, Path]:
     for f in sorted((data / "seq_000" / "images").glob("*.png")):
         writer.write(np.asarray(Image.open(f).convert("RGB")))
     writer.close()
-    cfg = preset("default")
-    cfg.data.width, cfg.data.height = w, h
-    torch.manual_seed(0)
-    disp, pose = build_models(cfg)
-    ckpt = work / "model.pt"
-    save_checkpoint(
-        ckpt,
-        {
-            "config": config_to_dict(cfg),
-            "step": 0,
-            "disp_net": disp.state_dict(),
-            "pose_net": pose.state_dict(),
-        },
-    )
-    return video, ckpt
+    return video, untrained_checkpoint(work / "model.pt", w, h)
 
 
 def worker(video: str, ckpt: str, out: str, batch: int, amp: bool) -> dict:

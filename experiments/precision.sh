@@ -10,10 +10,7 @@ steps=${1:-1000}
 bin=.venv/bin
 out=experiments/out
 data=$out/data
-if [ ! -f "$data/splits/default/test.txt" ]; then
-  $bin/cylsfm synth "$data" --sequences 16 --frames 150 --width 256 --height 64 --seed 0 --overwrite
-  $bin/python -c "from cylsfm.data.splits import make_splits; make_splits('$data', mode='sequence', fractions=(12/16, 1/16, 3/16), seed=0)"
-fi
+. experiments/benchmark_data.sh
 for seed in 0 1; do for amp in true false; do
   run=$out/amp-$amp-s$seed
   if [ ! -f "$run/checkpoints/latest.pt" ]; then

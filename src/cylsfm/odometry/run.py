@@ -91,7 +91,7 @@ def odometry(
     started = time.perf_counter()
     opt = settings or OdometrySettings()
     ride = open_ride(input, opt.fps, opt.stride)
-    predictor, plan = _model_and_plan(ride, checkpoint, opt, opt.camera)
+    predictor, plan = _model_and_plan(ride, checkpoint, opt)
     net_cam = plan.network_input.resized(*predictor.size)
     mask_file = ride_mask(ride, opt.mask)
     mask = network_mask(mask_file, ride.size, plan, predictor.size) if mask_file is not None else None
@@ -186,14 +186,14 @@ def _turnable(predictor: Predictor, mount_yaw: float | str) -> bool:
     return turnable
 
 
-def _model_and_plan(ride: Ride, checkpoint: Any, opt: OdometrySettings, camera: Any) -> tuple[Predictor, Any]:
+def _model_and_plan(ride: Ride, checkpoint: Any, opt: OdometrySettings) -> tuple[Predictor, Any]:
     """The predictor (``checkpoint`` itself when it is one) and how the ride's frames reach it."""
     predictor = (
         checkpoint
         if isinstance(checkpoint, Predictor)
         else Predictor.from_checkpoint(checkpoint, opt.device, opt.pose_iterations, opt.amp)
     )
-    return predictor, ride_plan(ride, predictor, camera)
+    return predictor, ride_plan(ride, predictor, opt.camera)
 
 
 def _settings(

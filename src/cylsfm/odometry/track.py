@@ -185,12 +185,11 @@ class Tracker:
             return
         if depth is None:
             depth = self._depth(indices, images)
-        # the network's own depth of the targets serves the pose network's further passes (not turned yet)
-        own = self.depth_of is None and self.p.pose_iterations > 0
         with torch.inference_mode():
             tgt = images[k : images.shape[0] - k]
             src = torch.stack([images[o : o + len(tgt)] for o in range(2 * k + 1) if o != k], 1)
-            given = depth[k : images.shape[0] - k] if own else None
+            # the network's own depth of the targets serves the further passes (the frames not turned yet)
+            given = depth[k : images.shape[0] - k] if self._passes_take_depth else None
             rel = self.p.poses(tgt, src, self.camera, depth=given, **self.masked)
         length = float(rel[:, k, :3, 3].norm(dim=-1).median())  # the step after the target
         found = mount_yaw(images, depth, self.view, length, self.align_config, mask=self.mask)
@@ -205,9 +204,15 @@ class Tracker:
             return self.p.depth(images, self.camera, **self.masked).float().clone()
 
     @property
+    def _passes_take_depth(self) -> bool:
+        """Whether the depth the tracker predicts (the network's, not ground truth) serves the pose
+        network's further passes (there are some)."""
+        return self.depth_of is None and self.p.pose_iterations > 0
+
+    @property
     def _own_depth(self) -> bool:
-        """Whether every frame's depth is the network's, at the pose network's input (not ground truth)."""
-        return self.need_depth and self.depth_of is None and self.p.pose_iterations > 0
+        """Whether every frame's depth is predicted as it arrives and serves the further passes."""
+        return self.need_depth and self._passes_take_depth
 
     def _windows(self, last_centre: int) -> None:
         """The pose network on every window whose centre is at most ``last_centre``."""

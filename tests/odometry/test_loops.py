@@ -182,6 +182,49 @@ def test_checks_drop_a_loop_beyond_the_drift_and_a_loop_that_no_other_supports()
     np.testing.assert_allclose(again[0].pose, checked[0].pose)
 
 
+def _weak(loop: Loop, inliers: float) -> Loop:
+    """``loop`` as the verification leaves a pair that fits less well than an accepted loop."""
+    loop.inliers, loop.accepted, loop.why = inliers, False, "few inliers"
+    return loop
+
+
+def test_a_loop_at_the_end_of_a_ride_is_supported_by_pairs_that_fit_less_well_but_agree():
+    """A ride that ends where it started sees its start well from its last frame only: the frames before
+    fit less well (seen from farther back) but their alignment found the same place."""
+    c2w = _line(100)
+    reach = np.full(100, 10.0)
+    settings = LoopSettings()
+    assert settings.support == 2
+    lone = check_loops([_loop(0, 99, c2w)], c2w, reach, settings)
+    assert not lone[0].accepted and lone[0].why == "no other loop agrees"
+    weak = [_weak(_loop(0, 98, c2w), 0.45), _weak(_loop(0, 97, c2w), 0.35)]
+    checked = check_loops([_loop(0, 99, c2w), *weak], c2w, reach, settings)
+    assert [lp.accepted for lp in checked] == [True, False, False]  # the weak pairs support, never join
+    assert [lp.why for lp in checked[1:]] == ["few inliers", "few inliers"]
+    # not supported: a pair below the support's inliers; one whose pose disagrees (8 m off); one turned
+    # round; one that asks for more than the odometry's drift
+    for other in (
+        _weak(_loop(0, 98, c2w), settings.min_inliers_support - 0.01),
+        _weak(_loop(0, 98, c2w, offset=8.0), 0.45),
+        _weak(_loop(0, 98, c2w, turn_deg=180.0), 0.45),
+        _weak(_loop(0, 98, c2w, offset=40.0), 0.45),
+    ):
+        alone = check_loops([_loop(0, 99, c2w), other], c2w, reach, settings)
+        assert not alone[0].accepted, other
+    # a pair the two directions disagreed on supports nothing either
+    bad = _weak(_loop(0, 98, c2w), 0.45)
+    bad.why = "the two ways disagree"
+    assert not check_loops([_loop(0, 99, c2w), bad], c2w, reach, settings)[0].accepted
+    # a street driven back the other way: a loop turned round is supported by accepted loops only
+    back = _line(100)
+    back[50:, :3, :3] = rotation_y(np.asarray(math.pi))
+    back[50:, 2, 3] = 99.0 - np.arange(50, 100)
+    weak_turned = check_loops([_loop(10, 89, back), _weak(_loop(11, 88, back), 0.45)], back, reach, settings)
+    assert not weak_turned[0].accepted
+    both = check_loops([_loop(10, 89, back), _loop(11, 88, back)], back, reach, settings)
+    assert both[0].accepted and both[1].accepted
+
+
 def _circle(n: int = 100, radius: float = 16.0) -> np.ndarray:
     gt = np.tile(np.eye(4), (n, 1, 1))
     for k, a in enumerate(np.linspace(0, 2 * np.pi, n + 1)[:-1]):

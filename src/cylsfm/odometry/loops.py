@@ -75,9 +75,14 @@ class LoopSettings:
             (degrees). The visual compass looks for the yaw only that close to the odometry's, and a loop
             that turns farther from it is rejected: a straight street looks much the same ahead and
             behind, and a crossing four ways round, but the odometry knows which way the camera faces.
-        support: an accepted loop needs at least this many accepted loops (itself included) nearby (both
+        support: an accepted loop needs at least this many verified loops (itself included) nearby (both
             frames within ``span`` frames of its own) that agree with it through the odometry between
             them; a revisit is seen by several consecutive frames, a lookalike rarely agrees with itself.
+            The others may be accepted loops or pairs seen the same way round that fit less well (at
+            least ``min_inliers_support`` of their pixels, within the odometry's drift) but whose own
+            alignment found the pose the loop predicts: a ride that ends where it started sees its start
+            only from its last few frames, each a little farther back than the last.
+        min_inliers_support: see ``support``.
         span: frames; see ``support``.
         align: the alignment's settings.
     """
@@ -95,6 +100,7 @@ class LoopSettings:
     yaw_drift_deg: float = 30.0
     yaw_drift_per_frame_deg: float = 0.02
     support: int = 2
+    min_inliers_support: float = 0.3
     span: int = 20
     align: AlignConfig = field(default_factory=lambda: AlignConfig(levels=4, iterations=8))
 
@@ -109,10 +115,11 @@ class LoopSettings:
                 "loops: yaw_drift_deg and yaw_drift_per_frame_deg must be >= 0, got "
                 f"{self.yaw_drift_deg}, {self.yaw_drift_per_frame_deg}"
             )
-        if not (0 <= self.min_inliers <= 1 and 0 <= self.min_inliers_turned <= 1):
+        fractions = (self.min_inliers, self.min_inliers_turned, self.min_inliers_support)
+        if not all(0 <= f <= 1 for f in fractions):
             raise InputError(
-                f"loops: min_inliers and min_inliers_turned must be in [0, 1], got {self.min_inliers}, "
-                f"{self.min_inliers_turned}"
+                "loops: min_inliers, min_inliers_turned and min_inliers_support must be in [0, 1], got "
+                + ", ".join(f"{f:g}" for f in fractions)
             )
 
 
@@ -359,26 +366,26 @@ def check_loops(loops: list[Loop], c2w: np.ndarray, reach: np.ndarray, settings:
         c2w: the odometry's camera-to-world poses ``[M,4,4]`` (its own unit).
         reach: each frame's median depth ``[M]`` (the same unit).
     """
-    pos = c2w[:, :3, 3]
-    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    supporters = []
     for lp in loops:
-        if not lp.accepted:
+        weak = (
+            not lp.accepted
+            and lp.why == "few inliers"
+            and lp.inliers >= settings.min_inliers_support
+            and abs(float(yaw_angle(lp.pose))) <= math.radians(settings.turned_deg)
+        )
+        if not (lp.accepted or weak):
             continue
-        odo = invert(c2w[lp.j]) @ c2w[lp.i]  # the odometry's T_{i->j}
-        centre_loop = -lp.pose[:3, :3].T @ lp.pose[:3, 3]  # camera j in frame i
-        centre_odo = -odo[:3, :3].T @ odo[:3, 3]
-        allowed = settings.max_drift * (travelled[lp.j] - travelled[lp.i]) + 0.1 * reach[lp.i]
-        if np.linalg.norm(centre_loop - centre_odo) > allowed:
-            lp.accepted, lp.why = False, "farther than the odometry's drift"
-            continue
-        turn = float(yaw_angle(lp.pose)) - _odometry_yaw(c2w, lp.i, lp.j)
-        if abs(math.remainder(turn, 2 * math.pi)) > _yaw_allowance(settings, lp.i, lp.j):
-            lp.accepted, lp.why = False, "turned farther than the odometry's drift"
+        why = _beyond_drift(lp, c2w, reach, settings)
+        if why and lp.accepted:
+            lp.accepted, lp.why = False, why
+        if not why:
+            supporters.append(lp)
     kept = [lp for lp in loops if lp.accepted]
     for a in kept:
         agree = sum(
             1
-            for b in kept
+            for b in supporters
             if abs(a.i - b.i) <= settings.span
             and abs(a.j - b.j) <= settings.span
             and _agree(a, b, c2w, reach)
@@ -386,6 +393,21 @@ def check_loops(loops: list[Loop], c2w: np.ndarray, reach: np.ndarray, settings:
         if agree < settings.support:
             a.accepted, a.why = False, "no other loop agrees"
     return loops
+
+
+def _beyond_drift(lp: Loop, c2w: np.ndarray, reach: np.ndarray, settings: LoopSettings) -> str:
+    """Why loop ``lp`` asks for more than the odometry's plausible drift (``""``: it does not)."""
+    pos = c2w[:, :3, 3]
+    travelled = float(np.linalg.norm(np.diff(pos[lp.i : lp.j + 1], axis=0), axis=1).sum())
+    odo = invert(c2w[lp.j]) @ c2w[lp.i]  # the odometry's T_{i->j}
+    centre_loop = -lp.pose[:3, :3].T @ lp.pose[:3, 3]  # camera j in frame i
+    centre_odo = -odo[:3, :3].T @ odo[:3, 3]
+    if np.linalg.norm(centre_loop - centre_odo) > settings.max_drift * travelled + 0.1 * reach[lp.i]:
+        return "farther than the odometry's drift"
+    turn = float(yaw_angle(lp.pose)) - _odometry_yaw(c2w, lp.i, lp.j)
+    if abs(math.remainder(turn, 2 * math.pi)) > _yaw_allowance(settings, lp.i, lp.j):
+        return "turned farther than the odometry's drift"
+    return ""
 
 
 def _agree(a: Loop, b: Loop, c2w: np.ndarray, reach: np.ndarray) -> bool:

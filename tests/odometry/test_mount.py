@@ -51,6 +51,17 @@ def test_the_direction_of_travel_is_found_however_the_camera_is_mounted(frames, 
     assert lo - 3 <= _wrapped(math.degrees(found.yaw) - turned) <= hi + 3
 
 
+@pytest.mark.parametrize("roll", [0, 77])
+def test_the_search_at_half_size_finds_the_direction_of_the_search_at_full_size(frames, roll):
+    cam, images, depth, _ = frames
+    args = (roll_columns(images, roll), roll_columns(depth, roll), cam)
+    fast = mount_yaw(*args, step_length=0.3)
+    full = mount_yaw(*args, step_length=0.3, halve=False)
+    assert fast is not None and full is not None and fast.pairs == full.pairs
+    assert abs(_wrapped(math.degrees(fast.yaw - full.yaw))) < 1.5
+    assert fast.agreement == pytest.approx(full.agreement, abs=0.1)
+
+
 def test_too_few_frames_give_no_direction(frames):
     cam, images, depth, _ = frames
     assert mount_yaw(images[:3], depth[:3], cam, step_length=0.3) is None

@@ -3,6 +3,7 @@ depth refinement, metres from the camera height, resuming a killed run, videos, 
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -298,3 +299,34 @@ def test_the_targets_depth_handed_to_the_passes_gives_the_same_trajectory(ckpt, 
     slow = cylsfm.odometry(ride, ckpt, tmp_path / "slow", settings)
     assert len(given) >= 2 and all(given)  # the search and the windows were handed it
     np.testing.assert_allclose(fast.c2w, slow.c2w, atol=1e-5)
+
+
+def test_the_windows_of_the_search_for_the_direction_of_travel_are_not_computed_again(
+    ckpt, tmp_path, monkeypatch
+):
+    """A camera that faces its motion is not turned: the windows the search for the direction of travel
+    read are the ride's first windows, kept instead of read again (the same trajectory as a run told the
+    direction, which never searches)."""
+    poses = [make_pose(0.3, 0.1, -2.0 + 0.3 * i, yaw_deg=0.0) for i in range(N_FRAMES)]
+    seq = _room_ride(tmp_path / "straight" / "ride", poses)
+    read = []
+    original = odometry_run.Predictor.poses
+
+    def counted(self, target, *args, **kwargs):
+        read.append(target.shape[0])
+        return original(self, target, *args, **kwargs)
+
+    monkeypatch.setattr(odometry_run.Predictor, "poses", counted)
+    settings = OdometrySettings(refine=True, depth_from=seq.parent, device="cpu", progress=False, amp=False)
+    searched = cylsfm.odometry(seq, ckpt, tmp_path / "searched", settings)
+    found = json.loads((tmp_path / "searched" / "odometry.json").read_text())["direction_of_travel"]
+    assert found["pairs"] > 0 and abs(found["yaw_deg"]) < 1.0  # straight ahead: not turned
+    windows = N_FRAMES - 2  # every frame but the first and the last is a window's target
+    assert sum(read) == windows  # each window read once, in the search
+    read.clear()
+    told = cylsfm.odometry(seq, ckpt, tmp_path / "told", replace(settings, mount_yaw=0.0))
+    assert sum(read) == windows
+    assert (
+        json.loads((tmp_path / "told" / "odometry.json").read_text())["direction_of_travel"]["how"] == "given"
+    )
+    np.testing.assert_allclose(searched.c2w, told.c2w, atol=1e-6)

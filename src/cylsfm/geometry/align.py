@@ -43,7 +43,15 @@ from . import (
     transform_points,
 )
 
-__all__ = ["AlignConfig", "AlignResult", "align", "photometric_costs", "photometric_inliers", "resize_depth"]
+__all__ = [
+    "AlignConfig",
+    "AlignResult",
+    "align",
+    "half_size",
+    "photometric_costs",
+    "photometric_inliers",
+    "resize_depth",
+]
 
 #: Grey from RGB (ITU-R BT.601 luma weights).
 _LUMA = (0.299, 0.587, 0.114)
@@ -153,6 +161,21 @@ def _half(x: Tensor) -> Tensor:
     return F.interpolate(x, size=(h // 2, w // 2), mode="area")
 
 
+def half_size(
+    target: Tensor, source: Tensor, depth: Tensor, camera: Camera, mask: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor, Camera, Tensor | None] | None:
+    """Images ``[B,3,H,W]``, the targets' depth ``[B,1,H,W]``, their camera and a mask ``[N,1,H,W]`` (or
+    ``None``) at half the width and height, as :func:`align`'s own pyramid makes its next level (images
+    and mask averaged over 2x2 pixels, depth by :func:`resize_depth`); ``None`` where the half would be
+    smaller than a pyramid level may be."""
+    h, w = target.shape[-2:]
+    if h // 2 < _MIN_HEIGHT or w // 2 < _MIN_HEIGHT:
+        return None
+    small = camera.resized(w // 2, h // 2)
+    half_mask = None if mask is None else _half(mask.float())
+    return _half(target), _half(source), resize_depth(depth, (h // 2, w // 2)), small, half_mask
+
+
 def resize_depth(depth: Tensor, size: tuple[int, int]) -> Tensor:
     """Depth ``[B,1,H,W]`` (``<= 0``: unknown) -> ``[B,1,h,w]`` at ``size = (h, w)``: the area average of
     the disparity over the pixels with a depth, where they cover more than half the area; 0 elsewhere."""
@@ -198,7 +221,9 @@ def _pyramid(
     return out
 
 
-def _linearize(lv: _Level, pose: Tensor) -> _Linear:
+def _residuals(lv: _Level, pose: Tensor) -> tuple[_Linear, Tensor, Tensor]:
+    """The residuals at ``pose`` without their Jacobian (``jac`` left empty), with the moved points
+    ``[B,3,h,w]`` and the sampled source ``[B,C,h,w]`` that the Jacobian is made of."""
     points = transform_points(pose, lv.points)
     uv = lv.camera.project(points)
     sampled, valid = sample_image(lv.source, uv, lv.wrap)
@@ -209,6 +234,12 @@ def _linearize(lv: _Level, pose: Tensor) -> _Linear:
         valid = valid & ~hidden
         usable = usable - hidden.flatten(1).sum(1)
     r = sampled[:, :1] - lv.target
+    return _Linear(r, r.new_empty(0), valid, usable), points, sampled
+
+
+def _linearize(lv: _Level, pose: Tensor) -> _Linear:
+    res, points, sampled = _residuals(lv, pose)
+    r, valid, usable = res.r, res.valid, res.usable
     jp = projection_jacobian(lv.camera, points)  # [B,2,3,h,w]
     g = sampled[:, 1:2] * jp[:, 0] + sampled[:, 2:3] * jp[:, 1]  # dI/dP [B,3,h,w]
     px, py, pz = points.unbind(1)
@@ -264,20 +295,15 @@ def _solve(lin: _Linear, k: Tensor, damping: Tensor) -> Tensor:
 
 def _pick(lv: _Level, poses: list[Tensor]) -> tuple[Tensor, Tensor, Tensor, _Linear, Tensor]:
     """The cheapest of several poses per pair, all costed with the first one's robust scale: ``(pose,
-    index, cost, its linearisation, threshold k)``."""
-    lins = [_linearize(lv, p) for p in poses]
-    k = _scale(lins[0])
-    costs = torch.stack([_cost(lin, k) for lin in lins])  # [K,B]
+    index, cost, its linearisation, threshold k)``. Only the residuals of every pose are computed; the
+    Jacobian only at the pose picked (the same numbers as linearising every pose, for less work)."""
+    res = [_residuals(lv, p)[0] for p in poses]
+    k = _scale(res[0])
+    costs = torch.stack([_cost(r, k) for r in res])  # [K,B]
     best = costs.argmin(0)
     b = torch.arange(best.shape[0], device=best.device)
     pose = torch.stack(poses)[best, b]
-    lin = _Linear(
-        torch.stack([x.r for x in lins])[best, b],
-        torch.stack([x.jac for x in lins])[best, b],
-        torch.stack([x.valid for x in lins])[best, b],
-        torch.stack([x.usable for x in lins])[best, b],
-    )
-    return pose, best, costs[best, b], lin, k
+    return pose, best, costs[best, b], _linearize(lv, pose), k
 
 
 def _lm(lv: _Level, pose: Tensor, lin: _Linear, cost: Tensor, k: Tensor, config: AlignConfig) -> tuple:

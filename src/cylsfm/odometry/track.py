@@ -196,6 +196,9 @@ class Tracker:
         if found is not None:
             trusted = found.agreement >= MOUNT_AGREEMENT
             self.state.mount = (found.yaw if trusted else 0.0, found.agreement, found.pairs)
+        if self.roll == 0 and k + len(self.state.windows) == indices[k]:
+            # the frames stay as they are (a camera facing its motion): these are the chunk's windows
+            self.state.windows += list(rel.double().cpu().numpy())
 
     def _depth(self, indices: list[int], images: Tensor) -> Tensor:
         if self.depth_of is not None:

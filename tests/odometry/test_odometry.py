@@ -301,13 +301,14 @@ def test_the_targets_depth_handed_to_the_passes_gives_the_same_trajectory(ckpt, 
     np.testing.assert_allclose(fast.c2w, slow.c2w, atol=1e-5)
 
 
+@pytest.mark.parametrize("facing_deg", [0.0, 1.2])
 def test_the_windows_of_the_search_for_the_direction_of_travel_are_not_computed_again(
-    ckpt, tmp_path, monkeypatch
+    ckpt, tmp_path, monkeypatch, facing_deg
 ):
-    """A camera that faces its motion is not turned: the windows the search for the direction of travel
-    read are the ride's first windows, kept instead of read again (the same trajectory as a run told the
-    direction, which never searches)."""
-    poses = [make_pose(0.3, 0.1, -2.0 + 0.3 * i, yaw_deg=0.0) for i in range(N_FRAMES)]
+    """A camera that faces its motion (within two degrees) is not turned: the windows the search for the
+    direction of travel read are the ride's first windows, kept instead of read again (the same
+    trajectory as a run told to read the frames as they are, which never searches)."""
+    poses = [make_pose(0.3, 0.1, -2.0 + 0.3 * i, yaw_deg=facing_deg) for i in range(N_FRAMES)]
     seq = _room_ride(tmp_path / "straight" / "ride", poses)
     read = []
     original = odometry_run.Predictor.poses
@@ -320,7 +321,8 @@ def test_the_windows_of_the_search_for_the_direction_of_travel_are_not_computed_
     settings = OdometrySettings(refine=True, depth_from=seq.parent, device="cpu", progress=False, amp=False)
     searched = cylsfm.odometry(seq, ckpt, tmp_path / "searched", settings)
     found = json.loads((tmp_path / "searched" / "odometry.json").read_text())["direction_of_travel"]
-    assert found["pairs"] > 0 and abs(found["yaw_deg"]) < 1.0  # straight ahead: not turned
+    assert found["pairs"] > 0 and abs(found["yaw_deg"] + facing_deg) < 0.5  # the travel, seen turned
+    assert found["how"].endswith("the frames not turned")
     windows = N_FRAMES - 2  # every frame but the first and the last is a window's target
     assert sum(read) == windows  # each window read once, in the search
     read.clear()

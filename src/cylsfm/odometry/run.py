@@ -35,7 +35,7 @@ from .loops import Loop
 from .report import ride_metrics, top_view
 from .settings import LOOP_MIN_FRAMES, OdometrySettings
 from .state import STATE_FILE, State
-from .track import MOUNT_AGREEMENT, Tracker, TrackOptions, keyframe_steps, network_size
+from .track import MOUNT_AGREEMENT, STRAIGHT_AHEAD_DEG, Tracker, TrackOptions, keyframe_steps, network_size
 
 __all__ = ["OdometryResult", "OdometrySettings", "odometry"]
 
@@ -412,6 +412,8 @@ def _mount_summary(state: State) -> dict[str, Any] | None:
         how = f"not found: {pairs} pairs of frames disagree ({agreement:.0%} agree); taken as straight ahead"
     else:
         how = f"found in {pairs} pairs of frames, {agreement:.0%} agree"
+        if abs(math.degrees(yaw)) < STRAIGHT_AHEAD_DEG:
+            how += f"; within {STRAIGHT_AHEAD_DEG:g} degrees of straight ahead, the frames not turned"
     return {
         "yaw_deg": math.degrees(yaw),
         "agreement": agreement if pairs else None,

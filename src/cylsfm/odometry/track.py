@@ -32,6 +32,10 @@ __all__ = ["Timings", "TrackOptions", "Tracker"]
 
 #: The direction of travel found is used when at least this weighted fraction of the pairs agree with it.
 MOUNT_AGREEMENT = 0.5
+#: A direction of travel found within this many degrees of straight ahead leaves the frames as they are
+#: (the network reads them as trained: a camera facing its motion); turning them by a column or two
+#: changed no result (RESULTS.md) and would cost the search's windows, read again turned.
+STRAIGHT_AHEAD_DEG = 2.0
 #: ``(indices, network-size images [B,3,H,W], view depths [B,1,h,w])`` -> written depth files.
 DepthSink = Callable[[list[int], Tensor], None]
 
@@ -170,9 +174,9 @@ class Tracker:
     @property
     def roll(self) -> int:
         """Columns (of the network's input) by which the pose network's frames are turned: the direction
-        of travel straight ahead (0 while it is not known)."""
-        yaw = self.state.mount[0]
-        if not math.isfinite(yaw):
+        of travel straight ahead (0 while it is not known, and when found within ``STRAIGHT_AHEAD_DEG`` of it)."""
+        yaw, _, found = self.state.mount
+        if not math.isfinite(yaw) or (found and abs(math.degrees(yaw)) < STRAIGHT_AHEAD_DEG):
             return 0
         return round(-yaw * self.p.size[0] / (2 * math.pi)) % self.p.size[0]
 

@@ -13,7 +13,6 @@ import torch
 
 from cylsfm.data.format import load_depth, load_image
 from cylsfm.data.synth import generate_dataset
-from cylsfm.errors import InputError
 from cylsfm.evaluate.pose_metrics import chain_poses, trajectory_metrics
 from cylsfm.geometry import invert, load_camera, place_descriptor, place_distance, roll_columns, rotation_y
 from cylsfm.odometry.loops import (
@@ -141,24 +140,6 @@ def test_sequence_distances_by_blocks_of_rows_are_the_whole_matrix_s_rows():
         assert whole[q, c] == pytest.approx(by_hand(q, c))
     for a, b in ((0, 5), (2, 9), (35, 40), (0, 40)):
         np.testing.assert_allclose(sequence_distances(desc, 3, (a, b)), whole[a:b], atol=1e-12)
-
-
-def test_one_place_seen_by_many_frames_leaves_room_for_the_others():
-    """A revisit seen by every frame of a long stretch fills at most ``per_place`` of the pairs verified:
-    the best pairs of the other places the ride comes back to are verified too."""
-    from cylsfm.odometry.loops import _spread
-
-    crossing = [(250 + t, 500 + t, 0.1 + 0.001 * t) for t in range(30)]  # the best, all at one place
-    start = [(t, 519 - t, 0.5 + 0.01 * t) for t in range(5)]  # the ride's end at its start: worse
-    settings = LoopSettings(max_pairs=24, per_place=8)
-    kept = _spread(crossing + start, settings)
-    assert start[0] in kept and len([p for p in kept if p in start]) == 5
-    assert kept[:8] == crossing[:8] and len(kept) <= settings.max_pairs
-    for p in kept:  # no pair has more than per_place kept pairs (itself included) around it
-        assert sum(abs(p[0] - q[0]) <= 20 and abs(p[1] - q[1]) <= 20 for q in kept) <= 2 * settings.per_place
-    assert _spread(crossing, LoopSettings(max_pairs=64, per_place=64)) == crossing  # no cap: all, in order
-    with pytest.raises(InputError, match="per_place"):
-        LoopSettings(per_place=0)
 
 
 def _line(n: int) -> np.ndarray:

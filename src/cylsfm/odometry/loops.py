@@ -60,10 +60,6 @@ class LoopSettings:
         window: sequence matching over ``2 * window + 1`` frames around each.
         per_query: the nearest earlier frames each query frame keeps (apart by at least ``window``).
         max_pairs: pairs verified at most in a ride.
-        per_place: pairs verified at most around one place (both frames within ``span`` frames of those of
-            a pair kept before): a revisit seen by many consecutive frames leaves room in ``max_pairs``
-            for the other places the ride comes back to (a figure eight passes its crossing twice and
-            ends at its start).
         min_inliers: the smallest inlier fraction (both ways, :func:`~cylsfm.geometry.align.photometric_inliers`)
             of an accepted loop seen in much the same direction (a texture seen again at the same scale).
         turned_deg, min_inliers_turned: a revisit whose yaw is more than ``turned_deg`` degrees sees each
@@ -95,7 +91,6 @@ class LoopSettings:
     window: int = 5
     per_query: int = 2
     max_pairs: int = 64
-    per_place: int = 16
     min_inliers: float = 0.5
     turned_deg: float = 90.0
     min_inliers_turned: float = 0.6
@@ -110,17 +105,10 @@ class LoopSettings:
     align: AlignConfig = field(default_factory=lambda: AlignConfig(levels=4, iterations=8))
 
     def __post_init__(self) -> None:
-        if (
-            self.min_gap < 2
-            or self.window < 0
-            or self.per_query < 1
-            or self.max_pairs < 0
-            or self.per_place < 1
-        ):
+        if self.min_gap < 2 or self.window < 0 or self.per_query < 1 or self.max_pairs < 0:
             raise InputError(
-                "loops: min_gap must be at least 2, window at least 0, per_query and per_place at least 1, "
-                f"max_pairs at least 0; got {self.min_gap}, {self.window}, {self.per_query}, {self.per_place}, "
-                f"{self.max_pairs}"
+                "loops: min_gap must be at least 2, window at least 0, per_query at least 1, max_pairs at "
+                f"least 0; got {self.min_gap}, {self.window}, {self.per_query}, {self.max_pairs}"
             )
         if self.yaw_drift_deg < 0 or self.yaw_drift_per_frame_deg < 0:
             raise InputError(
@@ -233,25 +221,13 @@ def loop_candidates(
         for i in np.argsort(earlier, kind="stable"):
             if not plausible[i]:
                 continue
-            if all(abs(int(i) - t) > settings.span for t in taken):
+            if all(abs(int(i) - t) > settings.window for t in taken):
                 taken.append(int(i))
                 pairs.append((int(i), j, float(earlier[i]) / max(median, 1e-12)))
             if len(taken) == settings.per_query:
                 break
     pairs.sort(key=lambda p: p[2])
-    return _spread(pairs, settings)
-
-
-def _spread(pairs: list[tuple[int, int, float]], settings: LoopSettings) -> list[tuple[int, int, float]]:
-    """The best pairs, at most ``per_place`` around one place and ``max_pairs`` in all (in order)."""
-    kept: list[tuple[int, int, float]] = []
-    for p in pairs:
-        if len(kept) == settings.max_pairs:
-            break
-        near = sum(1 for q in kept if abs(p[0] - q[0]) <= settings.span and abs(p[1] - q[1]) <= settings.span)
-        if near < settings.per_place:
-            kept.append(p)
-    return kept
+    return pairs[: settings.max_pairs]
 
 
 def _starts(yaw: Tensor, reach: Tensor) -> Tensor:

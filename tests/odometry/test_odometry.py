@@ -272,7 +272,10 @@ def test_a_ride_that_comes_back_closes_its_loop(ckpt, round_ride, tmp_path):
     np.testing.assert_allclose(again.c2w, result.c2w)
     assert "loops" not in again.timings
     # other loop settings: the loops looked for again on the same tracking (no frame tracked again)
-    strict = replace(settings, loop=LoopSettings(min_gap=15, window=2, span=10, min_inliers=1.0))
+    strict = LoopSettings(
+        min_gap=15, window=2, span=10, min_inliers=1.0, min_inliers_turned=1.0, min_inliers_support=1.0
+    )
+    strict = replace(settings, loop=strict)
     other = cylsfm.odometry(round_ride, ckpt, out, strict)
     assert "loops" in other.timings and "pose network" not in other.timings
     assert other.loops["accepted"] == 0 and other.loops["verified"] == result.loops["verified"]

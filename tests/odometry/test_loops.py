@@ -13,6 +13,7 @@ import torch
 
 from cylsfm.data.format import load_depth, load_image
 from cylsfm.data.synth import generate_dataset
+from cylsfm.errors import InputError
 from cylsfm.evaluate.pose_metrics import chain_poses, trajectory_metrics
 from cylsfm.geometry import invert, load_camera, place_descriptor, place_distance, roll_columns, rotation_y
 from cylsfm.odometry.loops import (
@@ -279,3 +280,27 @@ def test_a_wrong_loop_among_right_ones_is_dropped():
     good, _ = close_loops(steps, right)
     with_wrong, _ = close_loops(steps, [*right, wrong])
     assert _ape(gt, with_wrong) == pytest.approx(_ape(gt, good), rel=0.02)
+
+
+def test_the_heading_allowed_grows_with_the_frames_between_but_stays_short_of_a_quarter_turn():
+    """The odometry's heading may have drifted more the longer the way between two frames, but never so
+    far that a street seen the other way round (or a crossing a quarter turn round) could pass."""
+    from cylsfm.odometry.loops import _yaw_allowance
+
+    settings = LoopSettings()
+    assert math.degrees(_yaw_allowance(settings, 0, 100)) == pytest.approx(40.0)
+    assert math.degrees(_yaw_allowance(settings, 300, 0)) == pytest.approx(60.0)
+    assert math.degrees(_yaw_allowance(settings, 0, 5000)) == pytest.approx(80.0)
+    c2w = _line(600)
+    reach = np.full(600, 10.0)
+    # a loop turned 70 degrees from the odometry 500 frames on is within the drift; 85 degrees is not
+    loops = [
+        _loop(0, 500, c2w, turn_deg=70.0),
+        _loop(1, 501, c2w, turn_deg=70.0),
+        _loop(2, 502, c2w, turn_deg=85.0),
+    ]
+    checked = check_loops(loops, c2w, reach, settings)
+    assert [lp.accepted for lp in checked] == [True, True, False]
+    assert checked[2].why == "turned farther than the odometry's drift"
+    with pytest.raises(InputError, match="yaw_drift_max_deg"):
+        LoopSettings(yaw_drift_max_deg=200.0)

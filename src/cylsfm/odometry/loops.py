@@ -70,9 +70,10 @@ class LoopSettings:
         max_drift: a loop may move the second frame, relative to the first, by at most this fraction of
             the distance the odometry travelled between them (plus a tenth of the median depth): the
             drift odometry can plausibly have; a loop that asks for more is a place that only looks alike.
-        yaw_drift_deg, yaw_drift_per_frame_deg: the heading the odometry can plausibly have lost between
-            the two frames: ``yaw_drift_deg`` plus ``yaw_drift_per_frame_deg`` per frame between them
-            (degrees). The visual compass looks for the yaw only that close to the odometry's, and a loop
+        yaw_drift_deg, yaw_drift_per_frame_deg, yaw_drift_max_deg: the heading the odometry can plausibly
+            have lost between the two frames: ``yaw_drift_deg`` plus ``yaw_drift_per_frame_deg`` per frame
+            between them, at most ``yaw_drift_max_deg`` (degrees; below 90, so that a street seen the
+            other way round is never taken for the same view). The visual compass looks for the yaw only that close to the odometry's, and a loop
             that turns farther from it is rejected: a straight street looks much the same ahead and
             behind, and a crossing four ways round, but the odometry knows which way the camera faces.
         support: an accepted loop needs at least this many verified loops (itself included) nearby (both
@@ -98,7 +99,8 @@ class LoopSettings:
     max_translation: float = 0.1
     max_drift: float = 0.15
     yaw_drift_deg: float = 30.0
-    yaw_drift_per_frame_deg: float = 0.02
+    yaw_drift_per_frame_deg: float = 0.1
+    yaw_drift_max_deg: float = 80.0
     support: int = 2
     min_inliers_support: float = 0.3
     span: int = 20
@@ -110,10 +112,14 @@ class LoopSettings:
                 "loops: min_gap must be at least 2, window at least 0, per_query at least 1, max_pairs at "
                 f"least 0; got {self.min_gap}, {self.window}, {self.per_query}, {self.max_pairs}"
             )
-        if self.yaw_drift_deg < 0 or self.yaw_drift_per_frame_deg < 0:
+        if (
+            self.yaw_drift_deg < 0
+            or self.yaw_drift_per_frame_deg < 0
+            or not 0 <= self.yaw_drift_max_deg <= 180
+        ):
             raise InputError(
-                "loops: yaw_drift_deg and yaw_drift_per_frame_deg must be >= 0, got "
-                f"{self.yaw_drift_deg}, {self.yaw_drift_per_frame_deg}"
+                "loops: yaw_drift_deg and yaw_drift_per_frame_deg must be >= 0 and yaw_drift_max_deg in "
+                f"[0, 180], got {self.yaw_drift_deg}, {self.yaw_drift_per_frame_deg}, {self.yaw_drift_max_deg}"
             )
         fractions = (self.min_inliers, self.min_inliers_turned, self.min_inliers_support)
         if not all(0 <= f <= 1 for f in fractions):
@@ -350,7 +356,8 @@ def _odometry_yaw(c2w: np.ndarray, i: int, j: int) -> float:
 
 def _yaw_allowance(settings: LoopSettings, i: int, j: int) -> float:
     """The heading drift (radians) the odometry can plausibly have between frames ``i`` and ``j``."""
-    return math.radians(min(180.0, settings.yaw_drift_deg + settings.yaw_drift_per_frame_deg * abs(j - i)))
+    drift = settings.yaw_drift_deg + settings.yaw_drift_per_frame_deg * abs(j - i)
+    return math.radians(min(settings.yaw_drift_max_deg, drift))
 
 
 def _rotation_deg(r: np.ndarray) -> float:

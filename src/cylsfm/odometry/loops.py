@@ -73,9 +73,10 @@ class LoopSettings:
         yaw_drift_deg, yaw_drift_per_frame_deg, yaw_drift_max_deg: the heading the odometry can plausibly
             have lost between the two frames: ``yaw_drift_deg`` plus ``yaw_drift_per_frame_deg`` per frame
             between them, at most ``yaw_drift_max_deg`` (degrees; below 90, so that a street seen the
-            other way round is never taken for the same view). The visual compass looks for the yaw only that close to the odometry's, and a loop
-            that turns farther from it is rejected: a straight street looks much the same ahead and
-            behind, and a crossing four ways round, but the odometry knows which way the camera faces.
+            other way round is never taken for the same view). The visual compass looks for the yaw only
+            that close to the odometry's, and a loop that turns farther from it is rejected: a straight
+            street looks much the same ahead and behind, and a crossing four ways round, but the odometry
+            knows which way the camera faces.
         support: an accepted loop needs at least this many verified loops (itself included) nearby (both
             frames within ``span`` frames of its own) that agree with it through the odometry between
             them; a revisit is seen by several consecutive frames, a lookalike rarely agrees with itself.

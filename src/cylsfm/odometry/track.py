@@ -174,7 +174,8 @@ class Tracker:
     @property
     def roll(self) -> int:
         """Columns (of the network's input) by which the pose network's frames are turned: the direction
-        of travel straight ahead (0 while it is not known, and when found within ``STRAIGHT_AHEAD_DEG`` of it)."""
+        of travel straight ahead (0 while it is not known, and when found within ``STRAIGHT_AHEAD_DEG``
+        of it)."""
         yaw, _, found = self.state.mount
         if not math.isfinite(yaw) or (found and abs(math.degrees(yaw)) < STRAIGHT_AHEAD_DEG):
             return 0

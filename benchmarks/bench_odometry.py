@@ -29,8 +29,8 @@ import torch
 
 import cylsfm
 from cylsfm.data.synth import generate_dataset
+from cylsfm.model import untrained_checkpoint
 from cylsfm.odometry import OdometrySettings
-from untrained import untrained_checkpoint
 
 
 def main() -> None:

@@ -26,7 +26,7 @@ def _setup(work: Path, frames: int, w: int, h: int) -> tuple[Path, Path]:
 
     from cylsfm.data.synth import generate_dataset
     from cylsfm.data.video import VideoWriter
-    from untrained import untrained_checkpoint
+    from cylsfm.model import untrained_checkpoint
 
     data = work / "ride"
     generate_dataset(

@@ -277,27 +277,13 @@ def synth(tmp_path_factory):
     """2 synthetic sequences x 8 frames at 128x32 (train: one sequence, test: the other) and an untrained
     checkpoint."""
     from cylsfm.data.synth import generate_dataset
-    from cylsfm.model import build_models, save_checkpoint
-    from cylsfm.model.config import config_to_dict, preset
+    from helpers import untrained_checkpoint
 
     base = tmp_path_factory.mktemp("evaldepth")
     root = base / "data"
     generate_dataset(root, sequences=2, frames=8, width=128, height=32, seed=3, workers=1, progress=False)
     make_splits(root, mode="sequence", fractions=(0.5, 0.0, 0.5))
-    cfg = preset("default")
-    cfg.data.width, cfg.data.height = 128, 32
-    torch.manual_seed(0)
-    disp, pose = build_models(cfg)
-    ckpt = base / "model.pt"
-    save_checkpoint(
-        ckpt,
-        {
-            "config": config_to_dict(cfg),
-            "step": 0,
-            "disp_net": disp.state_dict(),
-            "pose_net": pose.state_dict(),
-        },
-    )
+    ckpt = untrained_checkpoint(base)
     return root, ckpt
 
 

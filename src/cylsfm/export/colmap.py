@@ -7,10 +7,10 @@ input sees the whole sphere, so its views may look at the sky and the ground), r
 itself at its own resolution. In COLMAP (4.x: images belong to frames and rigs) the views form one rig whose
 reference sensor is the first view (the first pitch, straight ahead); every panorama is a frame of that rig,
 posed by ``rig_from_world`` (from the trajectory's camera-to-world pose: the camera axes are the same, x
-right, y down, z forward), and each of its views an image. Points: a regular sample of each panorama's depth (``points_per_frame``), back-projected by
-the panorama's own camera model into the world, coloured by the panorama, each with the track of the views
-that see it (of its panorama and of its neighbours along the ride, where their depth agrees) and the
-keypoint where it projects.
+right, y down, z forward), and each of its views an image. Points: a regular sample of each panorama's
+depth (``points_per_frame``), back-projected by the panorama's own camera model into the world,
+coloured by the panorama, each with the track of the views that see it (of its panorama and of its
+neighbours along the ride, where their depth agrees) and the keypoint where it projects.
 
 Conventions (tested against pycolmap's own reader and camera model): COLMAP stores world-to-camera poses
 (quaternions w-first in its text files) and puts pixel centres at +0.5, so a keypoint is the project's pixel

@@ -165,11 +165,9 @@ def export_stereo_video(
         for stem, rgb in read_frames(source, fps):
             chunk.append((stem, rgb))
             if len(chunk) == DEPTH_BATCH:
-                _depth_pass(scene_of, chunk, parts / "depth", stats, bar)
-                stems += [stem for stem, _ in chunk]
+                stems += _depth_pass(scene_of, chunk, parts / "depth", stats, bar)
                 chunk = []
-        _depth_pass(scene_of, chunk, parts / "depth", stats, bar)
-        stems += [stem for stem, _ in chunk]
+        stems += _depth_pass(scene_of, chunk, parts / "depth", stats, bar)
     if not stems:
         raise CylsfmError(f"{video}: no frames")
     factor, note = stats.factor()
@@ -189,21 +187,26 @@ def export_stereo_video(
 
 
 def _depth_pass(
-    scene_of: Any, chunk: list[tuple[str, np.ndarray]], folder: Path, stats: Any, bar: Any
-) -> None:
+    scene_of: Any, chunk: list[tuple[str, np.ndarray]], folder: Path, stats: _ClipStatistics, bar: Any
+) -> list[str]:
     """The first pass over frames ``chunk`` (``(stem, rgb)``): each frame's depth, predicted (in one network
     call when ``scene_of`` has ``many``, as :class:`~cylsfm.export.scene.SceneFunction`) and written once,
-    or read back; the clip's statistics gather them in frame order."""
+    or read back; the clip's statistics gather them in frame order. Returns the chunk's stems."""
     todo = [(stem, rgb) for stem, rgb in chunk if not (folder / f"{stem}.npy").is_file()]
     many = getattr(scene_of, "many", None)
     made: dict[str, Scene] = {}
     if many is not None and len(todo) > 1:
         made = dict(zip([stem for stem, _ in todo], many([rgb for _, rgb in todo]), strict=True))
     for stem, rgb in chunk:
+        depth_file = folder / f"{stem}.npy"
         if stem in made:
-            save_depth(folder / f"{stem}.npy", made[stem].depth)
-        stats.add(made.pop(stem) if stem in made else _scene(scene_of, rgb, folder / f"{stem}.npy"))
+            scene = made[stem]
+            save_depth(depth_file, scene.depth)
+        else:
+            scene = _scene(scene_of, rgb, depth_file)
+        stats.add(scene)
         bar.update(1)
+    return [stem for stem, _ in chunk]
 
 
 def _scene(scene_of: Any, rgb: np.ndarray, depth_file: Path) -> Scene:

@@ -10,10 +10,10 @@ from pathlib import Path
 import torch
 
 from ..nn import DispNet, PairPoseNet, PoseExpNet, PoseModel
-from .checkpoint import CheckpointError, load_checkpoint
-from .config import ConfigError, TrainConfig, config_from_dict
+from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from .config import ConfigError, TrainConfig, config_from_dict, config_to_dict, preset
 
-__all__ = ["LoadedModels", "build_models", "load_models", "upgrade_pose_state"]
+__all__ = ["LoadedModels", "build_models", "load_models", "untrained_checkpoint", "upgrade_pose_state"]
 
 
 def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseModel]:
@@ -26,6 +26,21 @@ def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseModel]:
     else:
         net = PoseExpNet(n_src, cfg.model.explainability, wrap=cfg.wrap, pose_head=cfg.pose_head)
     return disp, PoseModel(net, compass=cfg.model.compass and cfg.wrap)  # the compass reads full panoramas
+
+
+def untrained_checkpoint(
+    path: str | os.PathLike[str], width: int, height: int, fov: float = 360.0, recipe: str = "default"
+) -> Path:
+    """Write ``path``: a checkpoint of the preset ``recipe``'s networks, freshly initialised (seed 0), as if
+    trained at ``width x height`` on ``fov``-degree crops (step 0; it loads like a trained one). For timing
+    (the work does not depend on the weights) and tests. Returns ``path``."""
+    cfg = preset(recipe)
+    cfg.data.width, cfg.data.height, cfg.data.fov = width, height, fov
+    torch.manual_seed(0)
+    disp, pose = build_models(cfg)
+    state = {"config": config_to_dict(cfg), "step": 0, "disp_net": disp.state_dict()}
+    save_checkpoint(path, {**state, "pose_net": pose.state_dict()})
+    return Path(path)
 
 
 #: State-dict keys of the pose network before it was composed of parts -> today's (without the prefix of

@@ -374,6 +374,8 @@ def check_loops(loops: list[Loop], c2w: np.ndarray, reach: np.ndarray, settings:
         c2w: the odometry's camera-to-world poses ``[M,4,4]`` (its own unit).
         reach: each frame's median depth ``[M]`` (the same unit).
     """
+    pos = c2w[:, :3, 3]
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     supporters = []
     for lp in loops:
         weak = (
@@ -384,7 +386,7 @@ def check_loops(loops: list[Loop], c2w: np.ndarray, reach: np.ndarray, settings:
         )
         if not (lp.accepted or weak):
             continue
-        why = _beyond_drift(lp, c2w, reach, settings)
+        why = _beyond_drift(lp, c2w, reach, travelled[lp.j] - travelled[lp.i], settings)
         if why and lp.accepted:
             lp.accepted, lp.why = False, why
         if not why:
@@ -403,10 +405,11 @@ def check_loops(loops: list[Loop], c2w: np.ndarray, reach: np.ndarray, settings:
     return loops
 
 
-def _beyond_drift(lp: Loop, c2w: np.ndarray, reach: np.ndarray, settings: LoopSettings) -> str:
-    """Why loop ``lp`` asks for more than the odometry's plausible drift (``""``: it does not)."""
-    pos = c2w[:, :3, 3]
-    travelled = float(np.linalg.norm(np.diff(pos[lp.i : lp.j + 1], axis=0), axis=1).sum())
+def _beyond_drift(
+    lp: Loop, c2w: np.ndarray, reach: np.ndarray, travelled: float, settings: LoopSettings
+) -> str:
+    """Why loop ``lp`` asks for more than the odometry's plausible drift (``""``: it does not);
+    ``travelled``: the odometry's way between its two frames."""
     odo = invert(c2w[lp.j]) @ c2w[lp.i]  # the odometry's T_{i->j}
     centre_loop = -lp.pose[:3, :3].T @ lp.pose[:3, 3]  # camera j in frame i
     centre_odo = -odo[:3, :3].T @ odo[:3, 3]

@@ -131,8 +131,9 @@ def mount_yaw(
     if small is None:  # too small to halve: the search at full size
         best = _best_direction(tgt, src, d, starts, camera, config, mask)
     else:
+        tgt_half, src_half, d_half, cam_half, mask_half = small
         coarse = replace(config, levels=max(1, config.levels - 1))
-        best = _best_direction(*small[:3], starts, small[3], coarse, small[4])
+        best = _best_direction(tgt_half, src_half, d_half, starts, cam_half, coarse, mask_half)
         best = align(tgt, src, d, best, camera, config=replace(config, levels=1), mask=mask).poses
     centres = -(best[:, :3, :3].transpose(1, 2) @ best[:, :3, 3:])[..., 0]
     heading = torch.atan2(centres[:, 0], centres[:, 2])

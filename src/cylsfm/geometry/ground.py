@@ -18,7 +18,7 @@ from torch import Tensor
 from ..errors import InputError, check_shape
 from .cameras import Camera
 
-__all__ = ["MIN_GROUND_POINTS", "above_ground", "ground_height", "ground_plane", "metric_scale"]
+__all__ = ["MIN_GROUND_POINTS", "ground_height", "metric_scale"]
 
 #: The least number of points below the horizon a frame needs for a ground fit.
 MIN_GROUND_POINTS = 50
@@ -26,104 +26,48 @@ MIN_GROUND_POINTS = 50
 _BELOW_DEG = 15.0
 
 
-def _fit_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """The plane through ``points [N,3]``: its unit normal (pointing down, ``+y``) and the distance from the
-    origin to it (nan when it does not fit)."""
-    normal = np.array([0.0, 1.0, 0.0])
+def _fit_one(points: np.ndarray) -> float:
+    """Distance from the origin to the plane through ``points [N,3]`` (nan when it does not fit)."""
     height = float(np.median(points[:, 1]))
     if not height > 0:
-        return normal, math.nan
+        return math.nan
+    normal = np.array([0.0, 1.0, 0.0])
     keep = np.ones(len(points), dtype=bool)
     for _ in range(5):
         keep = np.abs(points @ normal - height) < 0.1 * height
         if keep.sum() < MIN_GROUND_POINTS:
-            return normal, math.nan
+            return math.nan
         p = points[keep]
         centre = p.mean(0)
         _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
         n = vt[-1] if vt[-1, 1] > 0 else -vt[-1]
         if n[1] < math.cos(math.radians(30)):  # not a floor: more than 30 degrees from level
-            return normal, math.nan
+            return math.nan
         normal, height = n, float(centre @ n)
-    return normal, (height if height > 0 else math.nan)
+    return height if height > 0 else math.nan
 
 
-def ground_plane(depth: Tensor, camera: Camera) -> tuple[Tensor, Tensor]:
-    """The ground seen in each depth map: a plane ``n . p = height`` in the camera's frame.
+def ground_height(depth: Tensor, camera: Camera) -> Tensor:
+    """The camera's height above the ground seen in each depth map.
 
     Args:
         depth: ``[B,1,H,W]`` depth of the camera model (any unit; ``<= 0``: unknown).
         camera: its camera (axes: x right, y down, z forward; the ground is below, at ``+y``).
 
     Returns:
-        ``(normals [B,3], heights [B])`` float64: the plane's unit normal (pointing down) and the camera's
-        distance to it in the depth's unit; height ``nan`` for a frame without a ground fit (fewer than
-        :data:`MIN_GROUND_POINTS` points more than 15 degrees below the horizon, or no plane within 30
-        degrees of level among them).
+        ``[B]`` float64 heights in the depth's unit, ``nan`` for a frame without a ground fit (fewer than
+        :data:`MIN_GROUND_POINTS` points more than 15 degrees below the horizon, or no level plane among
+        them).
     """
     check_shape(depth, "B,1,H,W", "depth")
     points = camera.unproject(depth.float().clamp(min=0))  # [B,3,H,W]
     rng = torch.linalg.vector_norm(points, dim=1)
     below = (points[:, 1] > rng * math.sin(math.radians(_BELOW_DEG))) & (depth[:, 0] > 0)
-    normals, heights = [], []
+    out = []
     for b in range(depth.shape[0]):
         sel = points[b].permute(1, 2, 0)[below[b]].double().cpu().numpy()
-        n, h = _fit_plane(sel) if len(sel) >= MIN_GROUND_POINTS else (np.array([0.0, 1.0, 0.0]), math.nan)
-        normals.append(n)
-        heights.append(h)
-    return torch.tensor(np.stack(normals), dtype=torch.float64), torch.tensor(heights, dtype=torch.float64)
-
-
-def ground_height(depth: Tensor, camera: Camera) -> Tensor:
-    """The camera's height above the ground seen in each depth map (:func:`ground_plane`'s heights).
-
-    Args:
-        depth: ``[B,1,H,W]`` depth of the camera model (any unit; ``<= 0``: unknown).
-        camera: its camera.
-
-    Returns:
-        ``[B]`` float64 heights in the depth's unit, ``nan`` for a frame without a ground fit.
-    """
-    return ground_plane(depth, camera)[1]
-
-
-def above_ground(
-    depth: Tensor, camera: Camera, normals: Tensor, heights: Tensor, margin: float = 0.05
-) -> Tensor:
-    """Depth with nothing below the ground: each pixel whose ray meets the ground plane is brought no further
-    than where it meets it (times ``1 + margin``); a point beyond would be under the floor.
-
-    A network's depth is least sure on wide open ground far away, where it may put the ground too far;
-    the plane fitted to the near ground (:func:`ground_plane`) bounds it there. Pixels above the plane's
-    horizon, unknown depth (``<= 0``) and frames without a fit (height ``nan``) are left as they are.
-
-    Args:
-        depth: ``[B,1,H,W]`` depth of the camera model (any unit).
-        camera: its camera.
-        normals: ``[B,3]`` the planes' unit normals (pointing down), ``heights``: ``[B]`` the camera's
-            distance to them (the depth's unit), as :func:`ground_plane` returns them.
-        margin: the fraction beyond the plane a point may lie (the plane's own uncertainty).
-
-    Returns:
-        ``[B,1,H,W]`` the depth, bounded.
-
-    Example:
-        >>> from cylsfm.geometry import CylindricalCamera
-        >>> cam = CylindricalCamera.full(64, 16)
-        >>> far = torch.full((1, 1, 16, 64), 100.0)
-        >>> bounded = above_ground(far, cam, torch.tensor([[0.0, 1.0, 0.0]]), torch.tensor([1.0]))
-        >>> bool(bounded[0, 0, -1].max() < 100), bool(bounded[0, 0, 0].min() == 100)
-        (True, True)
-    """
-    check_shape(depth, "B,1,H,W", "depth")
-    check_shape(normals, "B,3", "normals")
-    rays = camera.unproject(torch.ones_like(depth, dtype=torch.float32))  # [B,3,H,W]: a point at depth 1
-    n = normals.to(rays)
-    down = (rays * n[:, :, None, None]).sum(1, keepdim=True)  # [B,1,H,W]: how far down each ray heads
-    h = heights.to(rays)[:, None, None, None]
-    meets = (down > 1e-6) & torch.isfinite(h) & (depth > 0)
-    bound = torch.where(meets, h * (1 + margin) / down.clamp(min=1e-6), torch.full_like(down, math.inf))
-    return torch.minimum(depth, bound.to(depth.dtype))
+        out.append(_fit_one(sel) if len(sel) >= MIN_GROUND_POINTS else math.nan)
+    return torch.tensor(out, dtype=torch.float64)
 
 
 def metric_scale(heights: np.ndarray, camera_height: float) -> tuple[float, int]:

@@ -327,11 +327,6 @@ class Tracker:
             )
             cands = torch.stack((start, turned), 1)
         depth = torch.stack([self.depths[key] for key in keys])
-        import os
-        if os.environ.get("GCLAMP"):
-            from ..geometry.ground import above_ground, ground_plane
-            nrm, hgt = ground_plane(depth, self.view)
-            depth = above_ground(depth, self.view, nrm, hgt, float(os.environ["GCLAMP"]))
         res = align(tgt, src, depth, cands, self.view, config=self.align_config, mask=mask)
         st.refined += list(res.poses.cpu().numpy())
         st.cost += list(

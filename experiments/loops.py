@@ -12,7 +12,8 @@ in the opposite direction; ``stairs`` in a town whose buildings all look alike, 
 ``long``: a 1000-frame staircase in the plain town, for the time the loops add when nothing comes back;
 ``long-back``: a 1000-frame ride out and back in a town built for 1000 frames, for their time when
 loops are verified and closed)
-and ``cylsfm odometry --refine --loops`` runs on it. One run gives both trajectories: refined without
+and ``cylsfm odometry --refine --loops`` runs on it (with ``--true-depth``, on the ride's true depth:
+what the loops give where the depth is not the limit). One run gives both trajectories: refined without
 the loops (``refined``) and with them (``loops closed``); when no loop is accepted they are the same.
 Per ride: APE (Sim(3)) of both, the end-to-start gap of a closed ride as a fraction of its length (after
 the Sim(3) alignment's scale), the loops accepted, the wrong ones among them (a relative pose more than 5
@@ -100,8 +101,10 @@ def judge(pair: dict, gt: np.ndarray, out: Path) -> dict:
     }
 
 
-def measure(seq: Path, out: Path, checkpoint: str) -> dict:
-    result = cylsfm.odometry(seq, checkpoint, out, OdometrySettings(progress=False, refine=True, loops=True))
+def measure(seq: Path, out: Path, checkpoint: str, true_depth: bool = False) -> dict:
+    depth_from = seq.parent if true_depth else None
+    settings = OdometrySettings(progress=False, refine=True, loops=True, depth_from=depth_from)
+    result = cylsfm.odometry(seq, checkpoint, out, settings)
     times, gt = read_tum(seq / "poses.txt")
     length = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
     metrics = result.metrics or {}
@@ -156,6 +159,9 @@ def ride_arguments(description: str, towns: list[int], routes: list[str]) -> arg
     p.add_argument("out", type=Path)
     p.add_argument("--towns", type=int, nargs="*", default=towns)
     p.add_argument("--routes", nargs="*", default=routes)
+    p.add_argument(
+        "--true-depth", action="store_true", help="the refinement and the loops on the rides' true depth"
+    )
     return p.parse_args()
 
 
@@ -172,7 +178,7 @@ def main() -> None:
     table_file = args.out / "table.json"
     table = json.loads(table_file.read_text()) if table_file.is_file() else {}
     for name, seq, out in each_ride(args):
-        table[name] = measure(seq, out, args.checkpoint)
+        table[name] = measure(seq, out, args.checkpoint, args.true_depth)
         args.out.mkdir(parents=True, exist_ok=True)
         table_file.write_text(json.dumps(table, indent=2) + "\n")
         print(name, json.dumps(table[name]), flush=True)

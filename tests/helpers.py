@@ -85,14 +85,20 @@ def tiny_training_config(root, **extra):
 
 class PoseStub(torch.nn.Module):
     """A stand-in pose network for :class:`~cylsfm.model.Predictor`: what it reads of a
-    :class:`~cylsfm.nn.PoseModel` (``pairs``, the network ``net`` and ``with_compass``), without a compass.
+    :class:`~cylsfm.nn.PoseModel` (``pairs``, ``n_sources``, the network ``net`` with ``pair_vectors`` and
+    ``with_compass``), without a compass.
     Subclasses define ``forward(target, sources) -> (pose [B,S,6], None)``."""
 
     pairs = True
+    n_sources = 2
 
     @property
     def net(self) -> torch.nn.Module:
         return self
+
+    def pair_vectors(self, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+        """As :meth:`~cylsfm.nn.PairPoseNet.pair_vectors`: ``forward`` on each pair as a window of one source."""
+        return self.forward(first, second[:, None])[0][:, 0]
 
     def with_compass(self, pose: torch.Tensor, target: torch.Tensor, sources: torch.Tensor) -> torch.Tensor:
         return pose

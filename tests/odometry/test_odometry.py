@@ -11,6 +11,7 @@ from pathlib import Path
 import av
 import numpy as np
 import pytest
+import torch
 
 import cylsfm
 from cylsfm.cli import main
@@ -285,20 +286,22 @@ def test_a_ride_that_comes_back_closes_its_loop(ckpt, round_ride, tmp_path):
     assert plain.loops is None and "loops closed" not in plain.metrics
 
 
-def test_the_targets_depth_handed_to_the_passes_gives_the_same_trajectory(ckpt, ride, tmp_path, monkeypatch):
-    """The tracker hands the pose network's further passes the targets' depth it has already predicted (in
-    the search for the direction of travel and in every window): the same trajectory as passes that
+def test_the_shared_pairs_and_depth_give_the_same_trajectory(ckpt, ride, tmp_path, monkeypatch):
+    """The tracker reads each pair of frames once in the pose network's first pass (``ride_poses``) and
+    hands the further passes the targets' depth it has already predicted (in the search for the direction
+    of travel and in every window): the same trajectory as every window read whole, with passes that
     predict that depth again."""
     settings = OdometrySettings(save_depth_maps=True, device="cpu", progress=False, amp=False)
     fast = cylsfm.odometry(ride, ckpt, tmp_path / "fast", settings)
     given = []
-    poses = odometry_run.Predictor.poses
 
-    def plain(self, *args, depth=None, **kwargs):
+    def plain(self, frames, camera, roll=0, mask=None, depth=None):
         given.append(depth is not None)
-        return poses(self, *args, **kwargs)
+        n = frames.shape[0]
+        src = torch.stack((frames[: n - 2], frames[2:]), 1)
+        return self.poses(frames[1 : n - 1], src, camera, roll, mask)
 
-    monkeypatch.setattr(odometry_run.Predictor, "poses", plain)
+    monkeypatch.setattr(odometry_run.Predictor, "ride_poses", plain)
     slow = cylsfm.odometry(ride, ckpt, tmp_path / "slow", settings)
     assert len(given) >= 2 and all(given)  # the search and the windows were handed it
     np.testing.assert_allclose(fast.c2w, slow.c2w, atol=1e-5)
@@ -314,13 +317,13 @@ def test_the_windows_of_the_search_for_the_direction_of_travel_are_not_computed_
     poses = [make_pose(0.3, 0.1, -2.0 + 0.3 * i, yaw_deg=facing_deg) for i in range(N_FRAMES)]
     seq = _room_ride(tmp_path / "straight" / "ride", poses)
     read = []
-    original = odometry_run.Predictor.poses
+    original = odometry_run.Predictor.ride_poses
 
-    def counted(self, target, *args, **kwargs):
-        read.append(target.shape[0])
-        return original(self, target, *args, **kwargs)
+    def counted(self, frames, *args, **kwargs):
+        read.append(frames.shape[0] - 2)  # the windows of these frames
+        return original(self, frames, *args, **kwargs)
 
-    monkeypatch.setattr(odometry_run.Predictor, "poses", counted)
+    monkeypatch.setattr(odometry_run.Predictor, "ride_poses", counted)
     settings = OdometrySettings(refine=True, depth_from=seq.parent, device="cpu", progress=False, amp=False)
     searched = cylsfm.odometry(seq, ckpt, tmp_path / "searched", settings)
     found = json.loads((tmp_path / "searched" / "odometry.json").read_text())["direction_of_travel"]

@@ -228,6 +228,68 @@ class Predictor:
             tgt = roll_columns(tgt, roll).contiguous(memory_format=torch.channels_last)
             src = roll_columns(src, roll)
         pose = pose_vec_to_mat(self._pose(tgt, src).double())
+        return self._further(tgt, src, pose, camera, roll, depth)
+
+    @torch.inference_mode()
+    def ride_poses(
+        self,
+        frames: Tensor,
+        camera: Camera,
+        roll: int = 0,
+        mask: Tensor | None = None,
+        depth: Tensor | None = None,
+    ) -> Tensor:
+        """The poses of every window of ``S + 1`` consecutive frames (a target and ``S/2`` frames either
+        side, ``S = seq_length - 1`` of the model, even) of ``frames [N,3,H,W]``: ``T_tgt_to_src
+        [N-S,S,4,4]``, window ``c`` with target ``c + S/2``, as :meth:`poses` gives for those windows (up
+        to float rounding), with each frame prepared once and each pair of frames read once by the pose
+        network's first pass (the pair network's pose from ``b`` to ``a`` is the negated 6-vector of the
+        pose from ``a`` to ``b``; the further passes are each window's own).
+
+        ``roll``, ``mask``: as for :meth:`poses`; ``depth``: the targets' depth ``[N-S,1,h,w]`` at the
+        network's input size (``None``: predicted here).
+
+        A one-pass pose network (the paper's) reads each window whole, as :meth:`poses` does.
+
+        Raises:
+            CylsfmError: an odd ``S``, fewer than ``S + 1`` frames, or as :meth:`poses`.
+        """
+        s = self.pose_net.n_sources
+        if s % 2:
+            raise CylsfmError(f"ride_poses needs windows centred on their target, not {s} sources")
+        n, k = frames.shape[0], s // 2
+        if n < s + 1:
+            raise CylsfmError(f"ride_poses needs at least {s + 1} frames, got {n}")
+        if not self.pose_net.pairs:  # a one-pass network reads each window whole
+            tgt = frames[k : n - k]
+            src = torch.stack([frames[k + o : n - k + o] for o in range(-k, k + 1) if o], 1)
+            return self.poses(tgt, src, camera, roll, mask, depth)
+        if roll and not (self.fov >= 360 and self.wrap):
+            raise CylsfmError("turning the frames (roll) needs a model of full panoramas")
+        x = self.prepare(frames, camera, mask)
+        if roll:
+            x = roll_columns(x, roll).contiguous(memory_format=torch.channels_last)
+        m = n - s
+        firsts = torch.cat([x[: n - d] for d in range(1, k + 1)])
+        seconds = torch.cat([x[d:] for d in range(1, k + 1)])
+        with self._precision():
+            vecs = self.pose_net.net.pair_vectors(firsts, seconds)  # v(a -> a + d), d = 1 .. k in turn
+        ahead = {d: vecs[sum(n - e for e in range(1, d)) :][: n - d] for d in range(1, k + 1)}
+        tgt = x[k : k + m]
+        offsets = [o for o in range(-k, k + 1) if o]
+        src = torch.stack([x[k + o : k + o + m] for o in offsets], 1)
+        vec = torch.stack(
+            [ahead[o][k : k + m] if o > 0 else -ahead[-o][k + o : k + o + m] for o in offsets], 1
+        )
+        vec = self.pose_net.with_compass(vec.float(), tgt, src)
+        return self._further(tgt, src, pose_vec_to_mat(vec.double()), camera, roll, depth)
+
+    def _further(
+        self, tgt: Tensor, src: Tensor, pose: Tensor, camera: Camera, roll: int, depth: Tensor | None
+    ) -> Tensor:
+        """The further passes over the first pass's ``pose [B,S,4,4]`` of the (rolled) network inputs, and
+        the poses turned back by ``roll`` (see :meth:`poses`)."""
+        b = tgt.shape[0]
         if self.pose_iterations:
             if depth is not None:
                 if depth.shape != (b, 1, *tgt.shape[-2:]):

@@ -133,8 +133,14 @@ class PairPoseNet(nn.Module):
         _check_inputs(target, sources, self.n_sources, self.wrap)
         b, s = sources.shape[:2]
         first = target[:, None].expand_as(sources).flatten(0, 1)  # [B*S,3,H,W]
-        pairs = self.pair.pair_poses(first, sources.flatten(0, 1))
-        return (pairs[: b * s] - pairs[b * s :]).view(b, s, 6), None
+        return self.pair_vectors(first, sources.flatten(0, 1)).view(b, s, 6), None
+
+    def pair_vectors(self, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+        """The pose 6-vectors from ``first [N,3,H,W]`` to ``second [N,3,H,W]``, pair by pair: ``[N,6]``
+        (the pose from ``second`` to ``first`` is exactly its negative)."""
+        n = first.shape[0]
+        pairs = self.pair.pair_poses(first, second)
+        return (pairs[:n] - pairs[n:]).view(n, 6)
 
 
 class VisualCompass(nn.Module):

@@ -191,11 +191,9 @@ class Tracker:
         if depth is None:
             depth = self._depth(indices, images)
         with torch.inference_mode():
-            tgt = images[k : images.shape[0] - k]
-            src = torch.stack([images[o : o + len(tgt)] for o in range(2 * k + 1) if o != k], 1)
             # the network's own depth of the targets serves the further passes (the frames not turned yet)
             given = depth[k : images.shape[0] - k] if self._passes_take_depth else None
-            rel = self.p.poses(tgt, src, self.camera, depth=given, **self.masked)
+            rel = self.p.ride_poses(images, self.camera, depth=given, **self.masked)
         length = float(rel[:, k, :3, 3].norm(dim=-1).median())  # the step after the target
         found = mount_yaw(images, depth, self.view, length, self.align_config, mask=self.mask)
         if found is not None:
@@ -229,14 +227,11 @@ class Tracker:
         t = time.perf_counter()
         for n in range(0, len(centres), self.batch):
             chunk = centres[n : n + self.batch]
-            tgt = torch.stack([self.images[c] for c in chunk])
-            src = torch.stack(
-                [torch.stack([self.images[f] for f in range(c - k, c + k + 1) if f != c]) for c in chunk]
-            )
+            frames = torch.stack([self.images[f] for f in range(chunk[0] - k, chunk[-1] + k + 1)])
             # the targets' depth, when predicted already, serves the pose network's further passes too
             depth = torch.stack([self.depths[c] for c in chunk]) if self._own_depth else None
-            with torch.inference_mode():
-                rel = self.p.poses(tgt, src, self.camera, self.roll, depth=depth, **self.masked)
+            with torch.inference_mode():  # each pair of frames read once by the first pass
+                rel = self.p.ride_poses(frames, self.camera, self.roll, depth=depth, **self.masked)
             st.windows += list(rel.double().cpu().numpy())
         self.times.add("pose network", t)
 

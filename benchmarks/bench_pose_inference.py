@@ -1,5 +1,6 @@
-"""Pose inference as odometry runs it: ``Predictor.poses`` on windows of three frames (a target and its two
-neighbours), batches of 8, with one pass and with the default further passes, in fp32 and with the
+"""Pose inference as odometry runs it: ``Predictor.ride_poses`` on the windows of three frames (a target and
+its two neighbours) of consecutive frames, batches of 8 windows (10 frames; code without it: ``Predictor.poses``
+on the 8 windows), with one pass and with the default further passes, in fp32 and with the
 networks in bf16 (where the CPU has it natively). The networks are untrained (the work does not depend on
 the weights); what bf16 does to the trained networks' accuracy is measured in RESULTS.md. With ``--before DIR`` the same measurements of the code
 checked out in ``DIR`` (e.g. ``git worktree add DIR COMMIT``) run alternately with today's, so that both
@@ -48,6 +49,8 @@ def worker(size: tuple[int, int], iterations: int, amp: bool, reps: int, windows
     src = torch.stack((frames[:-2], frames[2:]), 1)
 
     def run() -> torch.Tensor:
+        if hasattr(predictor, "ride_poses"):  # as odometry reads them: each pair of frames once
+            return torch.cat([predictor.ride_poses(frames[i : i + 10], cam) for i in range(0, windows, 8)])
         return torch.cat([predictor.poses(tgt[i : i + 8], src[i : i + 8], cam) for i in range(0, windows, 8)])
 
     out = run()  # warm-up

@@ -246,8 +246,8 @@ class Predictor:
         network's first pass (the pair network's pose from ``b`` to ``a`` is the negated 6-vector of the
         pose from ``a`` to ``b``; the further passes are each window's own).
 
-        ``roll``, ``mask``: as for :meth:`poses`; ``depth``: the targets' depth ``[N-S,1,h,w]`` at the
-        network's input size (``None``: predicted here).
+        ``roll``: as for :meth:`poses`; ``mask``: ``[N or 1,1,H,W]`` (see :meth:`prepare`); ``depth``: the
+        targets' depth ``[N-S,1,h,w]`` at the network's input size (``None``: predicted here).
 
         A one-pass pose network (the paper's) reads each window whole, as :meth:`poses` does.
 

@@ -10,8 +10,9 @@ monocular scale may drift along the ride and a loop can correct it. The factors:
   tenth of the median step, the scale to half a per cent a step (the drift allowed; chosen on rides of
   training towns, see RESULTS.md);
 - one per accepted loop ``(i, j)`` from its pose ``T_{i->j}`` and the ratio of the two frames' depth units,
-  under a Cauchy kernel, so that a wrong loop that slipped through the verification costs little once it
-  disagrees with the rest, instead of folding the trajectory onto it.
+  under a Huber kernel, so that a wrong loop that slipped through the verification costs little once it
+  disagrees with the rest, instead of folding the trajectory onto it; a loop still more than
+  :attr:`GraphSettings.reject` standard deviations off after solving is dropped and the graph solved again.
 
 Levenberg-Marquardt from the odometry's chained poses. The result is in the first frame's unit (the
 odometry's unit where it starts).

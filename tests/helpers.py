@@ -100,5 +100,9 @@ class PoseStub(torch.nn.Module):
         """As :meth:`~cylsfm.nn.PairPoseNet.pair_vectors`: ``forward`` on each pair as a window of one source."""
         return self.forward(first, second[:, None])[0][:, 0]
 
-    def with_compass(self, pose: torch.Tensor, target: torch.Tensor, sources: torch.Tensor) -> torch.Tensor:
+    compass = None
+
+    def with_compass(
+        self, pose: torch.Tensor, target: torch.Tensor, sources: torch.Tensor, yaws=None
+    ) -> torch.Tensor:
         return pose

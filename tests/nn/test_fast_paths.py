@@ -1,6 +1,6 @@
 """The pose network's fast paths against the plain computations they replace: the pairs read from one
 copy of the input (:meth:`PoseEncoder.forward_pairs`) and the compass's target spectrum computed once per
-target (:func:`compass_yaws`)."""
+target (:func:`compass_yaws`) and each frame's spectrum once for the windows of a ride (:func:`window_yaws`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from cylsfm.errors import InputError, ShapeError
-from cylsfm.geometry import compass_yaw, compass_yaws
+from cylsfm.geometry import compass_yaw, compass_yaws, window_yaws
 from cylsfm.nn import PairPoseNet, PoseExpNet
 
 
@@ -69,3 +69,19 @@ def test_compass_of_each_source_equals_each_pair_alone(masked: bool) -> None:
         compass_yaws(target, sources[:2])
     with pytest.raises(ShapeError, match="mask"):
         compass_yaws(target, sources, torch.ones(3, 1, 32, 128))
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_window_yaws_equal_each_windows_compass_yaws(k: int) -> None:
+    g = torch.Generator().manual_seed(3)
+    base = torch.rand(1, 3, 16, 128, generator=g)
+    frames = torch.cat(
+        [torch.roll(base, 3 * i, -1) + 0.05 * torch.rand(1, 3, 16, 128, generator=g) for i in range(7)]
+    )
+    n = frames.shape[0]
+    sources = torch.stack([frames[k + o : n - k + o] for o in range(-k, k + 1) if o], 1)
+    yaws = window_yaws(frames, k)
+    torch.testing.assert_close(yaws, compass_yaws(frames[k : n - k], sources), atol=1e-12, rtol=0)
+    assert yaws.shape == (n - 2 * k, 2 * k) and float(yaws.abs().min()) > 0.1  # every pair turned
+    with pytest.raises(ShapeError, match="no window"):
+        window_yaws(frames[: 2 * k], k)

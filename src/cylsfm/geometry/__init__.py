@@ -4,7 +4,7 @@ Nothing here knows about networks or datasets.
 """
 
 from .cameras import Camera, CameraError, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
-from .compass import column_shift, compass_yaw, compass_yaws
+from .compass import column_shift, compass_yaw, compass_yaws, window_yaws
 from .jacobian import projection_jacobian
 from .place import place_descriptor, place_distance
 from .pose import (
@@ -73,6 +73,7 @@ __all__ = [
     "sample_image",
     "transform_points",
     "tum_to_mat",
+    "window_yaws",
     "yaw_matrix",
     "yaw_transform",
 ]

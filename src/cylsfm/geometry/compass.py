@@ -27,7 +27,7 @@ from torch import Tensor
 
 from ..errors import InputError, ShapeError, check_shape
 
-__all__ = ["column_shift", "compass_yaw", "compass_yaws"]
+__all__ = ["column_shift", "compass_yaw", "compass_yaws", "window_yaws"]
 
 
 def _spectrum(x: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -177,3 +177,31 @@ def compass_yaws(target: Tensor, sources: Tensor, mask: Tensor | None = None) ->
     spec_s = _spectrum(sources.flatten(0, 1), mask).view(b, s, *spec_t.shape[1:])
     cross = (spec_t.conj()[:, None] * spec_s).sum(2).flatten(0, 1)  # [B*S, F]
     return (_shift_of(cross, width) / (width / (2 * math.pi))).view(b, s)
+
+
+def window_yaws(frames: Tensor, k: int) -> Tensor:
+    """:func:`compass_yaws` of every window of ``2k + 1`` consecutive frames (the middle frame the target,
+    the others its sources in time order), each frame's spectrum computed once.
+
+    Args:
+        frames: panoramas ``[N, C, H, W]`` in time order, full 360° width, ``N >= 2k + 1``.
+        k: frames either side of a window's target.
+
+    Returns:
+        ``[N - 2k, 2k]`` yaws (float64) from each window's target to its sources, equal to
+        ``compass_yaws(frames[k:N-k], sources)`` of those windows.
+
+    >>> t = torch.rand(1, 3, 8, 64)
+    >>> y = window_yaws(torch.cat((t, torch.roll(t, 2, -1), torch.roll(t, 5, -1))), 1)
+    >>> bool(torch.allclose(y, torch.tensor([[-2.0, 3.0]], dtype=torch.float64) * 2 * math.pi / 64))
+    True
+    """
+    check_shape(frames, "N,C,H,W", "frames")
+    n, width = frames.shape[0], frames.shape[-1]
+    if k < 1 or n < 2 * k + 1:
+        raise ShapeError(f"window_yaws: {n} frames hold no window of {2 * k + 1}")
+    m = n - 2 * k
+    spec = _spectrum(frames)  # [N, CH, F]
+    sources = torch.stack([spec[k + o : k + o + m] for o in range(-k, k + 1) if o], 1)  # [m, 2k, CH, F]
+    cross = (spec[k : k + m].conj()[:, None] * sources).sum(2).flatten(0, 1)
+    return (_shift_of(cross, width) / (width / (2 * math.pi))).view(m, 2 * k)

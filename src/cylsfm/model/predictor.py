@@ -39,6 +39,7 @@ from ..geometry import (
     resize_image,
     roll_columns,
     roll_pose,
+    window_yaws,
 )
 from ..runtime import autocast_dtype, network_precision, pick_device
 from .build import LoadedModels, load_models
@@ -242,8 +243,8 @@ class Predictor:
         """The poses of every window of ``S + 1`` consecutive frames (a target and ``S/2`` frames either
         side, ``S = seq_length - 1`` of the model, even) of ``frames [N,3,H,W]``: ``T_tgt_to_src
         [N-S,S,4,4]``, window ``c`` with target ``c + S/2``, as :meth:`poses` gives for those windows (up
-        to float rounding), with each frame prepared once and each pair of frames read once by the pose
-        network's first pass (the pair network's pose from ``b`` to ``a`` is the negated 6-vector of the
+        to float rounding), with each frame prepared once, its compass spectrum computed once and each pair
+        of frames read once by the pose network's first pass (the pair network's pose from ``b`` to ``a`` is the negated 6-vector of the
         pose from ``a`` to ``b``; the further passes are each window's own).
 
         ``roll``: as for :meth:`poses`; ``mask``: ``[N or 1,1,H,W]`` (see :meth:`prepare`); ``depth``: the
@@ -277,11 +278,13 @@ class Predictor:
         ahead = {d: vecs[sum(n - e for e in range(1, d)) :][: n - d] for d in range(1, k + 1)}
         tgt = x[k : k + m]
         offsets = [o for o in range(-k, k + 1) if o]
-        src = torch.stack([x[k + o : k + o + m] for o in offsets], 1)
+        src = torch.stack([x[k + o : k + o + m] for o in offsets], 1)  # [m,S,3,h,w], laid out as poses' are:
+        src = src.flatten(0, 1).contiguous(memory_format=torch.channels_last).view(src.shape)
         vec = torch.stack(
             [ahead[o][k : k + m] if o > 0 else -ahead[-o][k + o : k + o + m] for o in offsets], 1
         )
-        vec = self.pose_net.with_compass(vec.float(), tgt, src)
+        yaws = window_yaws(x.float(), k) if self.pose_net.compass is not None else None
+        vec = self.pose_net.with_compass(vec.float(), tgt, src, yaws)
         return self._further(tgt, src, pose_vec_to_mat(vec.double()), camera, roll, depth)
 
     def _further(

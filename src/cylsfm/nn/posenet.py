@@ -151,7 +151,12 @@ class VisualCompass(nn.Module):
     def forward(self, target: torch.Tensor, sources: torch.Tensor) -> torch.Tensor:
         """``target [B,3,H,W]``, ``sources [B,S,3,H,W]`` (full panoramas) -> ``[B,S,6]``."""
         with torch.no_grad():
-            yaw = compass_yaws(target.float(), sources.float())[..., None]
+            return self.vectors(compass_yaws(target.float(), sources.float()))
+
+    @staticmethod
+    def vectors(yaws: torch.Tensor) -> torch.Tensor:
+        """Yaws ``[B,S]`` (radians) -> pose 6-vectors ``[B,S,6]``, zero but for ``ry``."""
+        yaw = yaws[..., None]
         zeros = torch.zeros_like(yaw)
         return torch.cat((zeros, zeros, zeros, zeros, yaw, zeros), -1)
 
@@ -188,11 +193,19 @@ class PoseModel(nn.Module):
         pose, masks = self.net(target, sources)
         return self.with_compass(pose, target, sources), masks
 
-    def with_compass(self, pose: torch.Tensor, target: torch.Tensor, sources: torch.Tensor) -> torch.Tensor:
+    def with_compass(
+        self,
+        pose: torch.Tensor,
+        target: torch.Tensor,
+        sources: torch.Tensor,
+        yaws: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """``pose [B,S,6]`` plus the compass's yaw from ``target`` to ``sources`` (unchanged without it);
-        in fp32 when ``pose`` is bf16 or fp16 (a network under autocast), so that the yaw is not rounded."""
+        in fp32 when ``pose`` is bf16 or fp16 (a network under autocast), so that the yaw is not rounded.
+        ``yaws`` ``[B,S]``: those yaws computed already (:func:`~cylsfm.geometry.window_yaws`)."""
         if self.compass is None:
             return pose
         if pose.dtype in (torch.bfloat16, torch.float16):
             pose = pose.float()
-        return pose + self.compass(target, sources).to(pose.dtype)
+        added = self.compass(target, sources) if yaws is None else self.compass.vectors(yaws)
+        return pose + added.to(pose.dtype)

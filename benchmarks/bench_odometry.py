@@ -29,7 +29,6 @@ import torch
 
 import cylsfm
 from cylsfm.data.synth import generate_dataset
-from cylsfm.model import untrained_checkpoint
 from cylsfm.odometry import OdometrySettings
 
 
@@ -50,6 +49,8 @@ def main() -> None:
     if args.worker:
         print(json.dumps(worker(json.loads(args.worker))))
         return
+    from cylsfm.model import untrained_checkpoint  # today's; a worker may run an earlier code without it
+
     w, h = (int(v) for v in args.size.split("x"))
     work = Path(args.work or tempfile.mkdtemp(prefix="bench_odometry_"))
     data = work / f"ride_{w}x{h}_{args.frames}"

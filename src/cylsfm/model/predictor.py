@@ -220,8 +220,7 @@ class Predictor:
         Raises:
             CylsfmError: ``roll`` for a model that does not see whole panoramas; ``depth`` of another size.
         """
-        if roll and not (self.fov >= 360 and self.wrap):
-            raise CylsfmError("turning the frames (roll) needs a model of full panoramas")
+        self._check_roll(roll)
         b, s = sources.shape[:2]
         tgt = self.prepare(target, camera, mask)
         src = self.prepare(sources.flatten(0, 1), camera, mask).reshape(b, s, *tgt.shape[1:])
@@ -244,8 +243,8 @@ class Predictor:
         side, ``S = seq_length - 1`` of the model, even) of ``frames [N,3,H,W]``: ``T_tgt_to_src
         [N-S,S,4,4]``, window ``c`` with target ``c + S/2``, as :meth:`poses` gives for those windows (up
         to float rounding), with each frame prepared once, its compass spectrum computed once and each pair
-        of frames read once by the pose network's first pass (the pair network's pose from ``b`` to ``a`` is the negated 6-vector of the
-        pose from ``a`` to ``b``; the further passes are each window's own).
+        of frames read once by the pose network's first pass (the pair network's pose from ``b`` to ``a``
+        is the negated 6-vector of the pose from ``a`` to ``b``; the further passes are each window's own).
 
         ``roll``: as for :meth:`poses`; ``mask``: ``[N or 1,1,H,W]`` (see :meth:`prepare`); ``depth``: the
         targets' depth ``[N-S,1,h,w]`` at the network's input size (``None``: predicted here).
@@ -265,8 +264,7 @@ class Predictor:
             tgt = frames[k : n - k]
             src = torch.stack([frames[k + o : n - k + o] for o in range(-k, k + 1) if o], 1)
             return self.poses(tgt, src, camera, roll, mask, depth)
-        if roll and not (self.fov >= 360 and self.wrap):
-            raise CylsfmError("turning the frames (roll) needs a model of full panoramas")
+        self._check_roll(roll)
         x = self.prepare(frames, camera, mask)
         if roll:
             x = roll_columns(x, roll).contiguous(memory_format=torch.channels_last)
@@ -275,7 +273,7 @@ class Predictor:
         seconds = torch.cat([x[d:] for d in range(1, k + 1)])
         with self._precision():
             vecs = self.pose_net.net.pair_vectors(firsts, seconds)  # v(a -> a + d), d = 1 .. k in turn
-        ahead = {d: vecs[sum(n - e for e in range(1, d)) :][: n - d] for d in range(1, k + 1)}
+        ahead = dict(zip(range(1, k + 1), vecs.split([n - d for d in range(1, k + 1)]), strict=True))
         tgt = x[k : k + m]
         offsets = [o for o in range(-k, k + 1) if o]
         src = torch.stack([x[k + o : k + o + m] for o in offsets], 1)  # [m,S,3,h,w], laid out as poses' are:
@@ -286,6 +284,10 @@ class Predictor:
         yaws = window_yaws(x.float(), k) if self.pose_net.compass is not None else None
         vec = self.pose_net.with_compass(vec.float(), tgt, src, yaws)
         return self._further(tgt, src, pose_vec_to_mat(vec.double()), camera, roll, depth)
+
+    def _check_roll(self, roll: int) -> None:
+        if roll and not (self.fov >= 360 and self.wrap):
+            raise CylsfmError("turning the frames (roll) needs a model of full panoramas")
 
     def _further(
         self, tgt: Tensor, src: Tensor, pose: Tensor, camera: Camera, roll: int, depth: Tensor | None

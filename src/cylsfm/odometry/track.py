@@ -323,28 +323,7 @@ class Tracker:
             cands = torch.stack((start, turned), 1)
         depth = torch.stack([self.depths[key] for key in keys])
         res = align(tgt, src, depth, cands, self.view, config=self.align_config, mask=mask)
-        poses = res.poses
-        import os
-        if os.environ.get("GROUND_LENGTH"):
-            pts = self.view.unproject(depth.float().clamp(min=0))
-            rng = torch.linalg.vector_norm(pts, dim=1, keepdim=True)
-            hgt = torch.tensor([st.heights[key] for key in keys], dtype=torch.float32).view(-1, 1, 1, 1)
-            ground = (pts[:, 1:2] > rng * math.sin(math.radians(float(os.environ.get("GL_DEG", "10"))))) & (
-                (pts[:, 1:2] - hgt).abs() < float(os.environ.get("GL_TOL", "0.1")) * hgt
-            ) & torch.isfinite(hgt)
-            if os.environ.get("GROUND_LENGTH") == "plane":
-                h = pts[:, 1:2] / depth.clamp(min=1e-6)
-                gd = torch.where(ground, hgt / h.clamp(min=1e-6), torch.zeros_like(depth))
-            else:
-                gd = torch.where(ground, depth, torch.zeros_like(depth))
-            rg = align(tgt, src, gd, poses, self.view, config=self.align_config, mask=mask)
-            ok = ground.flatten(1).float().mean(1) > 0.02
-            lt = torch.linalg.vector_norm(poses[:, :3, 3], dim=1)
-            lg = torch.linalg.vector_norm(rg.poses[:, :3, 3], dim=1)
-            k = torch.where(ok, lg / lt.clamp(min=1e-12), torch.ones_like(lt)).clamp(0.5, 2.0)
-            poses = poses.clone()
-            poses[:, :3, 3] *= k[:, None].to(poses.dtype)
-        st.refined += list(poses.cpu().numpy())
+        st.refined += list(res.poses.cpu().numpy())
         st.cost += list(
             torch.stack((res.start_cost, res.cost, res.start.double(), res.valid.double()), 1).numpy()
         )

@@ -12,8 +12,9 @@ in the opposite direction; ``stairs`` in a town whose buildings all look alike, 
 ``long``: a 1000-frame staircase in the plain town, for the time the loops add when nothing comes back;
 ``long-back``: a 1000-frame ride out and back in a town built for 1000 frames, for their time when
 loops are verified and closed)
-and ``cylsfm odometry --refine --loops`` runs on it (with ``--true-depth``, on the ride's true depth:
-what the loops give where the depth is not the limit). One run gives both trajectories: refined without
+and ``cylsfm odometry --refine --loops`` runs on it (with ``--steady-height``, odometry's step lengths in
+the unit of the fitted camera height, the column ``APE refined`` still the plain refinement's; with
+``--true-depth``, on the ride's true depth: what the loops give where the depth is not the limit). One run gives both trajectories: refined without
 the loops (``refined``) and with them (``loops closed``); when no loop is accepted they are the same.
 Per ride: APE (Sim(3)) of both, the end-to-start gap of a closed ride as a fraction of its length (after
 the Sim(3) alignment's scale), the loops accepted, the wrong ones among them (a relative pose more than 5
@@ -101,9 +102,13 @@ def judge(pair: dict, gt: np.ndarray, out: Path) -> dict:
     }
 
 
-def measure(seq: Path, out: Path, checkpoint: str, true_depth: bool = False) -> dict:
+def measure(
+    seq: Path, out: Path, checkpoint: str, true_depth: bool = False, steady_height: bool = False
+) -> dict:
     depth_from = seq.parent if true_depth else None
-    settings = OdometrySettings(progress=False, refine=True, loops=True, depth_from=depth_from)
+    settings = OdometrySettings(
+        progress=False, refine=True, loops=True, depth_from=depth_from, steady_height=steady_height
+    )
     result = cylsfm.odometry(seq, checkpoint, out, settings)
     times, gt = read_tum(seq / "poses.txt")
     length = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
@@ -162,6 +167,11 @@ def ride_arguments(description: str, towns: list[int], routes: list[str]) -> arg
     p.add_argument(
         "--true-depth", action="store_true", help="the refinement and the loops on the rides' true depth"
     )
+    p.add_argument(
+        "--steady-height",
+        action="store_true",
+        help="odometry's --steady-height: step lengths in the unit of the fitted camera height",
+    )
     return p.parse_args()
 
 
@@ -178,7 +188,7 @@ def main() -> None:
     table_file = args.out / "table.json"
     table = json.loads(table_file.read_text()) if table_file.is_file() else {}
     for name, seq, out in each_ride(args):
-        table[name] = measure(seq, out, args.checkpoint, args.true_depth)
+        table[name] = measure(seq, out, args.checkpoint, args.true_depth, args.steady_height)
         args.out.mkdir(parents=True, exist_ok=True)
         table_file.write_text(json.dumps(table, indent=2) + "\n")
         print(name, json.dumps(table[name]), flush=True)

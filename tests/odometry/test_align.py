@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -17,9 +18,11 @@ from cylsfm.geometry import (
     projection_jacobian,
     relative_pose,
     roll_columns,
+    rotation_y,
     yaw_matrix,
 )
 from cylsfm.geometry.align import photometric_inliers
+from cylsfm.geometry.ground import steady_height_steps
 from cylsfm.odometry import AlignConfig, align, ground_height, metric_scale
 
 
@@ -144,6 +147,29 @@ def test_ground_height_of_the_room_floor():
     assert ground_height(depth, cam).item() == pytest.approx(1.3, rel=0.01)
     scale, used = metric_scale(ground_height(depth * 2.0, cam).numpy(), 1.3)
     assert scale == pytest.approx(0.5, rel=0.01) and used == 1
+
+
+def test_steady_height_undoes_a_depth_unit_that_wanders_from_frame_to_frame():
+    rng = np.random.default_rng(0)
+    m = 12
+    true = np.tile(np.eye(4), (m - 1, 1, 1))
+    true[:, :3, :3] = rotation_y(rng.uniform(-0.1, 0.1, m - 1))
+    true[:, :3, 3] = rng.normal(size=(m - 1, 3))
+    unit = rng.uniform(0.7, 1.4, m)  # each frame's depth (and so each step) in its own unit
+    steps = true.copy()
+    steps[:, :3, 3] *= ((unit[:-1] + unit[1:]) / 2)[:, None]
+    heights = 1.6 * unit  # the ground fitted in each frame, in that frame's unit
+    heights[4] = np.nan  # no ground fit: the median's unit
+    out, used = steady_height_steps(steps, heights)
+    assert used == m - 1
+    ok = [i for i in range(m - 1) if i not in (3, 4)]
+    median = np.median(unit[np.isfinite(heights)])
+    np.testing.assert_allclose(out[ok, :3, 3], true[ok, :3, 3] * median, rtol=1e-12)
+    np.testing.assert_array_equal(out[:, :3, :3], steps[:, :3, :3])
+    with pytest.raises(InputError, match="no frame shows a level ground"):
+        steady_height_steps(steps, np.full(m, np.nan))
+    with pytest.raises(InputError, match="heights"):
+        steady_height_steps(steps, heights[:-1])
 
 
 def test_inliers_insensitive_to_sampling_accept_a_long_baseline_and_still_reject_a_wrong_pose():

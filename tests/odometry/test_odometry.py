@@ -88,6 +88,21 @@ def test_library_call_and_metres_from_the_camera_height(ckpt, ride, tmp_path):
     assert len(result.c2w) == N_FRAMES and result.metrics is not None
 
 
+def test_steady_height_changes_the_lengths_only(ckpt, ride, tmp_path):
+    opt = OdometrySettings(refine=True, device="cpu", progress=False, loops=False)
+    plain = cylsfm.odometry(ride, ckpt, tmp_path / "plain", opt)
+    steady = cylsfm.odometry(ride, ckpt, tmp_path / "steady", replace(opt, steady_height=True))
+    assert "steady camera height" in (tmp_path / "steady" / "trajectory.txt").read_text()
+    assert json.loads((tmp_path / "steady" / "odometry.json").read_text())["steady_height"] is True
+    rel = [np.linalg.inv(r.c2w[:-1]) @ r.c2w[1:] for r in (plain, steady)]
+    np.testing.assert_allclose(rel[0][:, :3, :3], rel[1][:, :3, :3], atol=1e-9)  # same rotations
+    lengths = [np.linalg.norm(r[:, :3, 3], axis=1) for r in rel]
+    assert not np.allclose(lengths[0], lengths[1])
+    # directions kept: each step's translation is the plain one times a positive factor
+    cos = (rel[0][:, :3, 3] * rel[1][:, :3, 3]).sum(1) / (lengths[0] * lengths[1])
+    assert (cos > 1 - 1e-9).all()
+
+
 def test_a_killed_run_continues_to_the_same_trajectory(ckpt, ride, tmp_path, monkeypatch):
     monkeypatch.setattr(odometry_run, "CHUNK", 3)
     whole = cylsfm.odometry(

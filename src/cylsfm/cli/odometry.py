@@ -34,6 +34,7 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
         metavar="METRES",
         help="the camera's height above the ground: the trajectory (and depth maps) in metres",
     )
+    p.add_argument("--steady-height", action="store_true", help="a camera at one height: steps in its unit")
     p.add_argument(
         "--keyframes",
         type=int,
@@ -123,6 +124,7 @@ def run_odometry(args: argparse.Namespace) -> int:
         refine=args.refine,
         depth_from=args.depth_from,
         camera_height=args.camera_height,
+        steady_height=args.steady_height,
         save_depth_maps=args.depth,
         fps=args.fps,
         stride=args.stride,

@@ -18,7 +18,7 @@ from torch import Tensor
 from ..errors import InputError, check_shape
 from .cameras import Camera
 
-__all__ = ["MIN_GROUND_POINTS", "ground_height", "metric_scale"]
+__all__ = ["MIN_GROUND_POINTS", "ground_height", "metric_scale", "steady_height_steps"]
 
 #: The least number of points below the horizon a frame needs for a ground fit.
 MIN_GROUND_POINTS = 50
@@ -87,3 +87,37 @@ def metric_scale(heights: np.ndarray, camera_height: float) -> tuple[float, int]
             "leave out the camera height (network units)"
         )
     return camera_height / float(np.median(h)), len(h)
+
+
+def steady_height_steps(steps: np.ndarray, heights: np.ndarray) -> tuple[np.ndarray, int]:
+    """The steps' lengths brought to one unit by a camera that stays at one height above the ground.
+
+    The depth's unit wanders from frame to frame; the ground height fitted in each frame measures it. Each
+    step's translation is divided by the mean of its two frames' heights over the median height of the
+    ride (a frame without a ground fit counts as the median), so that every step is in the unit in which
+    the camera's height is the ride's median; rotations are kept.
+
+    Args:
+        steps: relative poses ``[M-1, 4, 4]`` (frame ``i+1`` in frame ``i``), translations in the depth's unit.
+        heights: fitted ground heights ``[M]`` in the same unit, ``nan`` where none was fitted.
+
+    Returns:
+        ``(steps [M-1, 4, 4], frames with a ground fit)``.
+
+    Raises:
+        InputError: ``heights`` not one per frame, or no frame with a ground fit.
+    """
+    steps = np.asarray(steps, dtype=np.float64)
+    h = np.asarray(heights, dtype=np.float64)
+    if steps.ndim != 3 or steps.shape[1:] != (4, 4) or h.shape != (len(steps) + 1,):
+        raise InputError(f"steady height: {len(steps)} steps need {len(steps) + 1} heights, got {h.shape}")
+    fitted = np.isfinite(h) & (h > 0)
+    if not fitted.any():
+        raise InputError(
+            "no frame shows a level ground below the horizon, so the steps cannot be brought to the camera "
+            "height's unit; leave out the steady height"
+        )
+    ratio = np.where(fitted, h / np.median(h[fitted]), 1.0)
+    out = steps.copy()
+    out[:, :3, 3] /= ((ratio[:-1] + ratio[1:]) / 2)[:, None]
+    return out, int(fitted.sum())

@@ -24,7 +24,7 @@ from ..errors import CylsfmError, InputError
 from ..evaluate.pose_metrics import chain_poses
 from ..geometry import Camera, load_camera
 from ..geometry.align import resize_depth
-from ..geometry.ground import metric_scale
+from ..geometry.ground import metric_scale, steady_height_steps
 from ..model import Predictor
 from ..model.checkpoint import checkpoint_id
 from ..model.plan import model_vfov_h, network_images, network_mask, plan_input
@@ -127,7 +127,7 @@ def odometry(
             align=opt.align,
             batch_size=opt.batch_size,
             keyframe_every=opt.keyframe_every,
-            need_depth=opt.camera_height is not None,
+            need_depth=opt.camera_height is not None or opt.steady_height,
             find_mount=opt.find_mount and turnable,
             places=bool(opt.loops),
         ),
@@ -315,16 +315,15 @@ def _finish(
     """Close the loops, scale, chain, and write the trajectory, the plot, the measures and the summary."""
     refine = opt.refine
     refined = keyframe_steps(np.stack(state.refined), tracker.every) if refine else None
-    odometry_steps = refined if refined is not None else np.stack(state.net)
+    odometry_steps = _steady(refined if refined is not None else np.stack(state.net), state, opt)
     closed = closed_steps(odometry_steps, loops, tracker.times)
     steps, unit, scale, comments = _in_unit(
         closed if closed is not None else odometry_steps, state, opt, depths
     )
     if scale is not None and opt.save_depth_maps:
         _scaled_depth(dest, state, scale)
-    comments.append(
-        f"cylsfm {__version__} odometry of {ride.path}" + (", refined by direct alignment" if refine else "")
-    )
+    how = ", refined by direct alignment" if refine else ""
+    comments.append(f"cylsfm {__version__} odometry of {ride.path}{how}" + _steady_note(opt))
     if masked is not None:
         comments.append(f"mask: {masked['file']} ({masked['occluded_fraction']:.1%} of the pixels left out)")
     if (mount := _mount_summary(state)) is not None:
@@ -358,6 +357,7 @@ def _finish(
         "unit": unit,
         "metres_per_unit": scale,
         "refined": refine,
+        "steady_height": opt.steady_height,
         "seconds": seconds,
         "frames_per_second": len(c2w) / seconds if seconds > 0 else None,
         "timings": tracker.times.parts,
@@ -381,6 +381,15 @@ def _finish(
         seconds=seconds,
         loops=loop_summary,
     )
+
+
+def _steady(steps: np.ndarray, state: State, opt: OdometrySettings) -> np.ndarray:
+    """``steps [M-1,4,4]``, their lengths in a steady camera height's unit when ``opt.steady_height``."""
+    return steady_height_steps(steps, np.asarray(state.heights))[0] if opt.steady_height else steps
+
+
+def _steady_note(opt: OdometrySettings) -> str:
+    return ", steady camera height" if opt.steady_height else ""
 
 
 def _in_unit(

@@ -28,6 +28,9 @@ class OdometrySettings:
         depth_from: a dataset whose ground-truth depth the refinement uses instead of the network's
             (needs ``refine``).
         camera_height: the camera's height above the ground in metres: scale the result to metres.
+        steady_height: the camera stays at one height above the ground (on a vehicle, a helmet on level
+            ground): each step's length is brought to one unit by the ground height fitted in its two
+            frames (:func:`~cylsfm.geometry.ground.steady_height_steps`), before the loops are closed.
         save_depth_maps: write each frame's depth to ``OUT/depth/FRAME.npy``.
         fps: take about this many frames a second from a video (``None``: every frame); use the rate the
             model was trained at (``cylsfm prepare --fps``), or its steps are of another length.
@@ -61,6 +64,7 @@ class OdometrySettings:
     refine: bool = False
     depth_from: str | os.PathLike[str] | None = None
     camera_height: float | None = None
+    steady_height: bool = False
     save_depth_maps: bool = False
     fps: float | None = None
     stride: int = 1

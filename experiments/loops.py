@@ -14,8 +14,9 @@ in the opposite direction; ``stairs`` in a town whose buildings all look alike, 
 loops are verified and closed)
 and ``cylsfm odometry --refine --loops`` runs on it (with ``--steady-height``, odometry's step lengths in
 the unit of the fitted camera height, the column ``APE refined`` still the plain refinement's; with
-``--true-depth``, on the ride's true depth: what the loops give where the depth is not the limit). One run gives both trajectories: refined without
-the loops (``refined``) and with them (``loops closed``); when no loop is accepted they are the same.
+``--true-depth``, on the ride's true depth: what the loops give where the depth is not the limit). One run
+gives both trajectories: refined without the loops (``refined``) and with them (``loops closed``); when no
+loop is accepted they are the same.
 Per ride: APE (Sim(3)) of both, the end-to-start gap of a closed ride as a fraction of its length (after
 the Sim(3) alignment's scale), the loops accepted, the wrong ones among them (a relative pose more than 5
 degrees or 2 m plus a tenth of the distance from the truth: :func:`judge`), the yaw of the accepted loops,

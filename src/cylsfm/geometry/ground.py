@@ -79,14 +79,20 @@ def metric_scale(heights: np.ndarray, camera_height: float) -> tuple[float, int]
     """
     if not (math.isfinite(camera_height) and camera_height > 0):
         raise InputError(f"camera height must be a positive number of metres, got {camera_height}")
+    fitted, median = _fitted(
+        heights, "the camera height cannot set the scale; leave out the camera height (network units)"
+    )
+    return camera_height / median, int(fitted.sum())
+
+
+def _fitted(heights: np.ndarray, consequence: str) -> tuple[np.ndarray, float]:
+    """``(frames with a ground fit [M] bool, their median height)``; ``InputError`` naming ``consequence``
+    when no frame has one."""
     h = np.asarray(heights, dtype=np.float64)
-    h = h[np.isfinite(h) & (h > 0)]
-    if not len(h):
-        raise InputError(
-            "no frame shows a level ground below the horizon, so the camera height cannot set the scale; "
-            "leave out the camera height (network units)"
-        )
-    return camera_height / float(np.median(h)), len(h)
+    fitted = np.isfinite(h) & (h > 0)
+    if not fitted.any():
+        raise InputError(f"no frame shows a level ground below the horizon, so {consequence}")
+    return fitted, float(np.median(h[fitted]))
 
 
 def steady_height_steps(steps: np.ndarray, heights: np.ndarray) -> tuple[np.ndarray, int]:
@@ -111,13 +117,10 @@ def steady_height_steps(steps: np.ndarray, heights: np.ndarray) -> tuple[np.ndar
     h = np.asarray(heights, dtype=np.float64)
     if steps.ndim != 3 or steps.shape[1:] != (4, 4) or h.shape != (len(steps) + 1,):
         raise InputError(f"steady height: {len(steps)} steps need {len(steps) + 1} heights, got {h.shape}")
-    fitted = np.isfinite(h) & (h > 0)
-    if not fitted.any():
-        raise InputError(
-            "no frame shows a level ground below the horizon, so the steps cannot be brought to the camera "
-            "height's unit; leave out the steady height"
-        )
-    ratio = np.where(fitted, h / np.median(h[fitted]), 1.0)
+    fitted, median = _fitted(
+        h, "the steps cannot be brought to the camera height's unit; leave out the steady height"
+    )
+    ratio = np.where(fitted, h / median, 1.0)
     out = steps.copy()
     out[:, :3, 3] /= ((ratio[:-1] + ratio[1:]) / 2)[:, None]
     return out, int(fitted.sum())

@@ -322,8 +322,7 @@ def _finish(
     )
     if scale is not None and opt.save_depth_maps:
         _scaled_depth(dest, state, scale)
-    how = ", refined by direct alignment" if refine else ""
-    comments.append(f"cylsfm {__version__} odometry of {ride.path}{how}" + _steady_note(opt))
+    comments.append(f"cylsfm {__version__} odometry of {ride.path}{_how(opt)}")
     if masked is not None:
         comments.append(f"mask: {masked['file']} ({masked['occluded_fraction']:.1%} of the pixels left out)")
     if (mount := _mount_summary(state)) is not None:
@@ -388,8 +387,11 @@ def _steady(steps: np.ndarray, state: State, opt: OdometrySettings) -> np.ndarra
     return steady_height_steps(steps, np.asarray(state.heights))[0] if opt.steady_height else steps
 
 
-def _steady_note(opt: OdometrySettings) -> str:
-    return ", steady camera height" if opt.steady_height else ""
+def _how(opt: OdometrySettings) -> str:
+    """The trajectory header's account of how the steps were made."""
+    return (", refined by direct alignment" if opt.refine else "") + (
+        ", steady camera height" if opt.steady_height else ""
+    )
 
 
 def _in_unit(

@@ -13,7 +13,8 @@ in the opposite direction; ``stairs`` in a town whose buildings all look alike, 
 ``long-back``: a 1000-frame ride out and back in a town built for 1000 frames, for their time when
 loops are verified and closed)
 and ``cylsfm odometry --refine --loops`` runs on it (with ``--steady-height``, odometry's step lengths in
-the unit of the fitted camera height, the column ``APE refined`` still the plain refinement's; with
+the unit of the fitted camera height, the column ``APE refined`` still the plain refinement's, ``APE
+steady height`` the run's own odometry without the loops, the ratio to it in brackets; with
 ``--true-depth``, on the ride's true depth: what the loops give where the depth is not the limit). One run
 gives both trajectories: refined without the loops (``refined``) and with them (``loops closed``); when no
 loop is accepted they are the same.
@@ -114,7 +115,9 @@ def measure(
     times, gt = read_tum(seq / "poses.txt")
     length = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
     metrics = result.metrics or {}
-    closed = metrics.get("loops closed", metrics["refined"])
+    # without loops (the run's own odometry: with --steady-height its lengths, else the plain refinement)
+    unlooped = metrics.get("steady height", metrics["refined"])
+    closed = metrics.get("loops closed", unlooped)
     stats, _ = trajectory_metrics(gt, times, result.c2w, times)
     gap = float(np.linalg.norm(result.c2w[-1, :3, 3] - result.c2w[0, :3, 3])) * stats["scale"] / length
     loops = result.loops or {"pairs": [], "verified": 0, "accepted": 0}
@@ -128,7 +131,9 @@ def measure(
         "length_m": length,
         "ape_refined": metrics["refined"]["ape_rmse"],
         "ape_loops": closed["ape_rmse"],
+        "ape_steady": metrics["steady height"]["ape_rmse"] if "steady height" in metrics else None,
         "ratio": closed["ape_rmse"] / metrics["refined"]["ape_rmse"],
+        "ratio_same_run": closed["ape_rmse"] / unlooped["ape_rmse"],
         "gap_fraction": gap,
         "true_gap_fraction": float(np.linalg.norm(gt[-1, :3, 3] - gt[0, :3, 3])) / length,
         "verified": loops["verified"],
@@ -144,16 +149,20 @@ def measure(
 
 def show(table: dict) -> None:
     print(
-        "| ride | frames (m) | APE refined | APE loops closed | ratio | end-start gap / length | loops "
-        "accepted / verified | wrong | yaw of loops (deg) | const. vel. | loop time / total (s) |"
+        "| ride | frames (m) | APE refined | APE steady height | APE loops closed | ratio (to the same "
+        "run without loops) | end-start gap / length | loops accepted / verified | wrong | yaw of loops (deg) "
+        "| const. vel. | loop time / total (s) |"
     )
-    print("|" + "---|" * 11)
+    print("|" + "---|" * 12)
     for name, r in table.items():
         yaw = "-" if r["yaw_deg_min"] is None else f"{r['yaw_deg_min']:.0f}-{r['yaw_deg_max']:.0f}"
         gap = f"{r['gap_fraction']:.2%} (true {r['true_gap_fraction']:.1%})"
+        steady = "-" if r.get("ape_steady") is None else f"{r['ape_steady']:.3f}"
+        same = r.get("ratio_same_run", r["ratio"])
         print(
-            f"| {name} | {r['frames']} ({r['length_m']:.0f}) | {r['ape_refined']:.3f} | {r['ape_loops']:.3f} | "
-            f"{r['ratio']:.2f}x | {gap} | {r['accepted']} / {r['verified']} | {r['wrong']} | {yaw} | "
+            f"| {name} | {r['frames']} ({r['length_m']:.0f}) | {r['ape_refined']:.3f} | {steady} | "
+            f"{r['ape_loops']:.3f} | {r['ratio']:.2f}x ({same:.2f}x) | {gap} | {r['accepted']} / "
+            f"{r['verified']} | {r['wrong']} | {yaw} | "
             f"{r['constant_velocity']:.2f} | {r['loop_seconds']:.1f} / {r['seconds']:.1f} |"
         )
 

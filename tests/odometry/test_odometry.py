@@ -101,6 +101,11 @@ def test_steady_height_changes_the_lengths_only(ckpt, ride, tmp_path):
     # directions kept: each step's translation is the plain one times a positive factor
     cos = (rel[0][:, :3, 3] * rel[1][:, :3, 3]).sum(1) / (lengths[0] * lengths[1])
     assert (cos > 1 - 1e-9).all()
+    # measured: the refinement as it was, and the trajectory written beside it
+    assert "steady height" not in plain.metrics and "steady height" in steady.metrics
+    assert steady.metrics["refined"] == plain.metrics["refined"]
+    assert steady.metrics["steady height"]["n_frames"] == plain.metrics["refined"]["n_frames"]
+    assert steady.metrics["steady height"] != plain.metrics["refined"]
 
 
 def test_a_killed_run_continues_to_the_same_trajectory(ckpt, ride, tmp_path, monkeypatch):

@@ -340,7 +340,8 @@ def _finish(
             chain_poses(np.stack(state.net)),
             ["the pose network alone"],
         )
-    measured = _measure(ride, state, refined, closed)
+    steady = odometry_steps if opt.steady_height and refined is not None else None
+    measured = _measure(ride, state, refined, closed, steady)
     top_view(
         dest / "trajectory.png",
         c2w,
@@ -454,7 +455,11 @@ class _Measured:
 
 
 def _measure(
-    ride: Ride, state: State, refined: np.ndarray | None, closed: np.ndarray | None
+    ride: Ride,
+    state: State,
+    refined: np.ndarray | None,
+    closed: np.ndarray | None,
+    steady: np.ndarray | None,
 ) -> _Measured | None:
     truth = ride.ground_truth()
     if truth is None:
@@ -464,6 +469,7 @@ def _measure(
         return None
     steps = {
         "loops closed": closed,
+        "steady height": steady,
         "refined": refined,
         "network": np.stack(state.net),
         "compass": np.stack(state.compass),

@@ -12,7 +12,6 @@ same run, the ceiling that a convolutional network can reach on this machine.
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import multiprocessing as mp
 import platform
@@ -69,7 +68,6 @@ def train_step_bench(
     fused_adam: bool = True,
     small_maps: bool = True,
     amp: bool = False,
-    phases: bool = True,
 ) -> dict:
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -82,7 +80,6 @@ def train_step_bench(
     torch.manual_seed(0)
     if not small_maps:  # the tiny deepest maps by oneDNN too, as before the matrix-product path
         small_maps_module.MAX_POSITIONS = 0
-    small_maps_module.PHASES = phases  # False: up-convolutions by oneDNN's transposed convolution
     fmt = torch.channels_last if channels_last else torch.contiguous_format
     # cylindrical: wrap-aware networks on a full panorama; otherwise the same networks, unwrapped, on a
     # pinhole camera: the SfMLearner baseline, measured in the same run.
@@ -152,7 +149,6 @@ def train_step_bench(
         "fused_adam": fused_adam,
         "small_maps": small_maps,
         "amp": amp,
-        "phases": phases,
         "step_s": t_step,
         "samples_per_s": batch / t_step,
         "step_gflop": flops / 1e9,
@@ -197,12 +193,6 @@ def main(argv: list[str] | None = None) -> None:
         default="both",
         help="cylindrical rows with the networks in bf16 (on a CPU with native bf16: AVX-512 BF16 or AMX)",
     )
-    parser.add_argument(
-        "--phases",
-        choices=["on", "off", "both"],
-        default="on",
-        help="up-convolutions as one convolution of their four output phases (cylindrical rows; 'both' adds rows without)",
-    )
     parser.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args(argv)
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
@@ -216,10 +206,7 @@ def main(argv: list[str] | None = None) -> None:
         for w, h in sizes:
             for cl in formats:
                 for small in {"on": [True], "off": [False], "both": [False, True]}[args.small_maps]:
-                    for amp, ph in itertools.product(
-                        {"on": [True], "off": [False], "both": [False, True]}[args.amp],
-                        {"on": [True], "off": [False], "both": [False, True]}[args.phases],
-                    ):
+                    for amp in {"on": [True], "off": [False], "both": [False, True]}[args.amp]:
                         job = (
                             w,
                             h,
@@ -232,7 +219,6 @@ def main(argv: list[str] | None = None) -> None:
                             True,
                             small,
                             amp,
-                            ph,
                         )
                         rows.append(pool.apply(_run, (("step", job),)))
             if not args.no_pinhole:  # SfMLearner's own configuration: pinhole, contiguous, plain Adam
@@ -262,8 +248,6 @@ def main(argv: list[str] | None = None) -> None:
             fmt += ", small maps by oneDNN"
         if r["amp"]:
             fmt += ", bf16 networks"
-        if r["model"] != "pinhole" and not r.get("phases", True):
-            fmt += ", up-convolutions by oneDNN"
         ratio = f"{r['step_s'] / reference[r['size']]:.2f}x" if r["size"] in reference else "-"
         print(
             f"| {r['model']} | {r['size']} | {fmt} | {r['step_s']:.3f} | {r['samples_per_s']:.1f} | {r['step_gflop']:.1f} "

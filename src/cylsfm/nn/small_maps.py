@@ -26,27 +26,6 @@ __all__ = ["MAX_POSITIONS", "conv2d_rows_padded", "conv_transpose2d_small"]
 #: functions into plain ``F.conv2d`` / ``F.conv_transpose2d`` (the benchmarks' "before").
 MAX_POSITIONS = 32
 
-#: Compute the up-convolution (kernel 3, stride 2, padding 1, output padding 1) as one ordinary 2x2
-#: convolution giving its four output phases, then a pixel shuffle (:func:`_up_by_phases`). False: oneDNN's
-#: transposed convolution (the benchmarks' "before").
-PHASES = True
-
-#: For each output phase (0: even rows or columns, 1: odd), the kernel tap that input offset 0 and 1 meet
-#: (-1: none): output ``2m`` is input ``m`` through tap 1; output ``2m + 1`` input ``m`` through tap 2 and
-#: input ``m + 1`` through tap 0.
-_TAPS = ((1, -1), (2, 0))
-#: ``[phase row, phase column, offset row, offset column]``: the index of the 3x3 kernel's tap (row * 3 +
-#: column), 9 where there is none.
-_PHASE_TAPS = torch.tensor(
-    [
-        [
-            [[ty * 3 + tx if ty >= 0 and tx >= 0 else 9 for tx in _TAPS[px]] for ty in _TAPS[py]]
-            for px in range(2)
-        ]
-        for py in range(2)
-    ]
-)
-
 
 def _matmul_wanted(x: Tensor, positions: int) -> bool:
     return x.device.type == "cpu" and torch.is_grad_enabled() and positions <= MAX_POSITIONS
@@ -108,9 +87,6 @@ def conv_transpose2d_small(
     k_rows, k_cols = weight.shape[-2:]
     height, width = x.shape[-2:]
     if not _matmul_wanted(x, height * width):
-        if PHASES and x.device.type == "cpu" and (k_rows, k_cols) == (3, 3) and tuple(stride) == (2, 2) and tuple(padding) == (1, 1) \
-                and tuple(output_padding) == (1, 1):
-            return _up_by_phases(x, weight, bias)
         return F.conv_transpose2d(x, weight, bias, stride, padding, output_padding)
     rows = (height - 1) * stride[0] - 2 * padding[0] + k_rows + output_padding[0]
     cols = (width - 1) * stride[1] - 2 * padding[1] + k_cols + output_padding[1]
@@ -121,29 +97,6 @@ def conv_transpose2d_small(
     if bias is not None:
         out = out + bias.reshape(1, c_out, 1, 1)
     return _like(out, x)
-
-
-def _up_by_phases(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-    """``F.conv_transpose2d(x, weight, bias, 2, 1, 1)`` as one 2x2 convolution with four times the output
-    channels (one per phase: even or odd row, even or odd column) and a pixel shuffle.
-
-    Args:
-        x: ``[B, C_in, H, W]``.
-        weight: ``[C_in, C_out, 3, 3]``.
-        bias: ``[C_out]`` or None.
-
-    Returns:
-        ``[B, C_out, 2H, 2W]``.
-    """
-    c_in, c_out = weight.shape[:2]
-    # the nine taps and a zero (index 9) for the offsets a phase does not meet
-    taps = torch.cat([weight.reshape(c_in, c_out, 9), weight.new_zeros(c_in, c_out, 1)], -1)
-    kernel = taps[:, :, _PHASE_TAPS]  # [C_in, C_out, phase row, phase column, offset row, offset column]
-    kernel = kernel.permute(1, 2, 3, 0, 4, 5).reshape(c_out * 4, c_in, 2, 2)
-    if x.is_contiguous(memory_format=torch.channels_last):
-        kernel = kernel.contiguous(memory_format=torch.channels_last)
-    phases = F.conv2d(F.pad(x, (0, 1, 0, 1)), kernel, None if bias is None else bias.repeat_interleave(4))
-    return _like(F.pixel_shuffle(phases, 2), x)
 
 
 def _like(out: Tensor, x: Tensor) -> Tensor:

@@ -18,12 +18,11 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from loops_errors import ape, load
 
 from cylsfm.evaluate.pose_metrics import chain_poses
 from cylsfm.geometry.ground import steady_height_steps
 from cylsfm.odometry.posegraph import GraphSettings, close_loops
-
-from loops_errors import ape, load
 
 
 def main() -> None:
@@ -59,8 +58,10 @@ def main() -> None:
             print(f"| {out.name}/{path.name} | " + " | ".join(cells) + " |", flush=True)
     for h, r in ratios.items():
         closed = [v for n, v in r if not n.startswith("back")]
-        print(f"{h}: closed rides at most 0.5x of the plain refinement: {sum(v <= 0.5 for v in closed)} of "
-              f"{len(closed)}; geometric mean of all ratios {np.exp(np.mean(np.log([v for _, v in r]))):.3f}")
+        print(
+            f"{h}: closed rides at most 0.5x of the plain refinement: {sum(v <= 0.5 for v in closed)} of "
+            f"{len(closed)}; geometric mean of all ratios {np.exp(np.mean(np.log([v for _, v in r]))):.3f}"
+        )
 
 
 if __name__ == "__main__":

@@ -115,7 +115,9 @@ def _graph(
         median = float(np.median(heights[fitted]))
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e3] * 6 + [cfg.height]))
         for j in np.flatnonzero(fitted):
-            graph.add(gtsam.PriorFactorSimilarity3(int(j), _similarity(gtsam, start[j], median / heights[j]), noise))
+            graph.add(
+                gtsam.PriorFactorSimilarity3(int(j), _similarity(gtsam, start[j], median / heights[j]), noise)
+            )
     odo = gtsam.noiseModel.Diagonal.Sigmas(
         _sigmas(cfg.step_rotation_deg, cfg.step_translation * unit, step_scale)
     )

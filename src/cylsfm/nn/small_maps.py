@@ -59,12 +59,10 @@ def conv2d_rows_padded(
     if not _matmul_wanted(x, rows * cols):
         return F.conv2d(x, weight, bias, (sh, sw), (pad_rows, 0))
     patches = F.unfold(x, (k_rows, k_cols), padding=(pad_rows, 0), stride=(sh, sw))  # B, C k k, L
-    matrix, taps_last = _as_matrix(weight)  # C_out, C k k (or k k C)
-    if taps_last:
-        patches = _swap(patches, x.shape[1], k_rows * k_cols)
-    # one matrix product over every position of every image: the weight's gradient one plain product
-    out = F.linear(patches.transpose(1, 2), matrix, bias)  # B, L, C_out
-    return _positions_to_map(out, rows, cols, x)
+    out = torch.matmul(weight.reshape(weight.shape[0], -1), patches)  # B, C_out, L
+    if bias is not None:
+        out = out + bias[:, None]
+    return _like(out.reshape(x.shape[0], weight.shape[0], rows, cols), x)
 
 
 def conv_transpose2d_small(
@@ -92,53 +90,17 @@ def conv_transpose2d_small(
         return F.conv_transpose2d(x, weight, bias, stride, padding, output_padding)
     rows = (height - 1) * stride[0] - 2 * padding[0] + k_rows + output_padding[0]
     cols = (width - 1) * stride[1] - 2 * padding[1] + k_cols + output_padding[1]
-    c_in, c_out = weight.shape[:2]
-    matrix, taps_last = _as_matrix(weight)  # C_in, C_out k k (or k k C_out)
+    c_out = weight.shape[1]
     # every input position scatters its kernel-sized patch: fold sums the overlapping patches
-    patches = torch.matmul(x.reshape(x.shape[0], c_in, -1).transpose(1, 2), matrix).transpose(1, 2)
-    if taps_last:
-        patches = _swap(patches, k_rows * k_cols, c_out)
+    patches = torch.matmul(weight.reshape(weight.shape[0], -1).t(), x.reshape(*x.shape[:2], -1))
     out = F.fold(patches, (rows, cols), (k_rows, k_cols), padding=padding, stride=stride)
     if bias is not None:
         out = out + bias.reshape(1, c_out, 1, 1)
     return _like(out, x)
 
 
-def _as_matrix(weight: Tensor) -> tuple[Tensor, bool]:
-    """A convolution's weight ``[A, B, k, k]`` as a matrix ``[A, B k k]``, read in its own memory order.
-
-    A weight in channels-last memory (``B`` innermost) is read as ``[A, k, k, B]``, a view, so that
-    neither the weight nor its gradient is copied into another layout (a bf16 gradient copied transposed
-    into fp32 costs more than the product itself); its columns are then ordered (tap row, tap column,
-    channel) instead of (channel, tap row, tap column).
-
-    Returns:
-        ``(matrix, taps first)``: True when the columns are in the channels-last order.
-    """
-    if weight.shape[1] > 1 and weight.stride(1) == 1:
-        return weight.permute(0, 2, 3, 1).reshape(weight.shape[0], -1), True
-    return weight.reshape(weight.shape[0], -1), False
-
-
-def _swap(patches: Tensor, outer: int, inner: int) -> Tensor:
-    """``[B, outer * inner, L]`` -> ``[B, inner * outer, L]``: the two factors of dimension 1 swapped."""
-    b, _, positions = patches.shape
-    return patches.reshape(b, outer, inner, positions).transpose(1, 2).reshape(b, inner * outer, positions)
-
-
-def _positions_to_map(out: Tensor, rows: int, cols: int, x: Tensor) -> Tensor:
-    """``[B, rows * cols, C]`` -> ``[B, C, rows, cols]``, in channels-last memory when ``x`` is."""
-    b, _, c = out.shape
-    out = out.reshape(b, rows, cols, c).permute(0, 3, 1, 2)  # channels-last memory already
-    return _like(out, x) if _channels_last(x) else out.contiguous()
-
-
-def _channels_last(x: Tensor) -> bool:
-    return x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
-
-
 def _like(out: Tensor, x: Tensor) -> Tensor:
     """``out`` in channels-last memory when ``x`` is (as oneDNN's result would be)."""
-    if _channels_last(x):
+    if x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous():
         return out.contiguous(memory_format=torch.channels_last)
     return out

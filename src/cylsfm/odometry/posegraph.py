@@ -45,8 +45,6 @@ class GraphSettings:
         reject: after solving, a loop whose error is larger than this many standard deviations (the norm
             of its whitened error) is dropped and the graph solved again (twice at most).
         iterations: Levenberg-Marquardt iterations at most.
-        height: with heights given to :func:`close_loops`, a frame's fitted ground height in the unit of
-            the camera height (log).
     """
 
     step_rotation_deg: float = 1.0
@@ -58,7 +56,6 @@ class GraphSettings:
     huber: float = 3.0
     reject: float = 10.0
     iterations: int = 100
-    height: float = 0.05
 
 
 def _similarity(gtsam, pose: np.ndarray, scale: float = 1.0):
@@ -100,24 +97,10 @@ def _graph(
     cfg: GraphSettings,
     step_scale: float,
     loop_scale: float,
-    heights: np.ndarray | None = None,
-    start: np.ndarray | None = None,
 ):
     """The factor graph (see the module docstring), with these scale uncertainties."""
     graph = gtsam.NonlinearFactorGraph()
-    first = np.full(7, 1e-6)
-    if heights is not None:
-        first[6] = 1e3  # the unit is the one of the camera height, not the first frame's
-    graph.add(gtsam.PriorFactorSimilarity3(0, gtsam.Similarity3(), gtsam.noiseModel.Diagonal.Sigmas(first)))
-    if heights is not None:
-        # each frame's scale s_j brings its fitted height h_j to the ride's median: s_j h_j = median
-        fitted = np.isfinite(heights) & (heights > 0)
-        median = float(np.median(heights[fitted]))
-        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e3] * 6 + [cfg.height]))
-        for j in np.flatnonzero(fitted):
-            graph.add(
-                gtsam.PriorFactorSimilarity3(int(j), _similarity(gtsam, start[j], median / heights[j]), noise)
-            )
+    graph.add(gtsam.PriorFactorSimilarity3(0, gtsam.Similarity3(), gtsam.noiseModel.Isotropic.Sigma(7, 1e-6)))
     odo = gtsam.noiseModel.Diagonal.Sigmas(
         _sigmas(cfg.step_rotation_deg, cfg.step_translation * unit, step_scale)
     )
@@ -142,10 +125,7 @@ def _graph(
 
 
 def close_loops(
-    steps: np.ndarray,
-    loops: list[Loop],
-    settings: GraphSettings | None = None,
-    heights: np.ndarray | None = None,
+    steps: np.ndarray, loops: list[Loop], settings: GraphSettings | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Optimise a ride's poses with its accepted loops (see the module docstring).
 
@@ -166,7 +146,7 @@ def close_loops(
     m = len(steps) + 1
     accepted = [lp for lp in loops if lp.accepted]
     start = chain_poses(steps)
-    if not accepted and heights is None:
+    if not accepted:
         return start, np.ones(m)
     unit = float(np.median(np.linalg.norm(steps[:, :3, 3], axis=1))) or 1.0
     values = gtsam.Values()
@@ -177,7 +157,7 @@ def close_loops(
     # ``cfg.reject`` standard deviations are dropped and the graph solved again without them
     for _ in range(3):
         for step_scale, loop_scale in ((1e-4, 1e-4), (cfg.step_scale, cfg.loop_scale)):
-            graph = _graph(gtsam, steps, accepted, unit, cfg, step_scale, loop_scale, heights, start)
+            graph = _graph(gtsam, steps, accepted, unit, cfg, step_scale, loop_scale)
             params = gtsam.LevenbergMarquardtParams()
             params.setMaxIterations(cfg.iterations)
             values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()

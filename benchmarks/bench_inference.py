@@ -26,6 +26,7 @@ def _median_ms(fn, reps: int) -> float:
 def main(argv: list[str] | None = None) -> None:
     from cylsfm.export.onnx import DepthOutput, export_onnx, onnx_session
     from cylsfm.nn import DispNet
+    from cylsfm.nn.packed import plain_convolutions
     from cylsfm.runtime import native_bf16
 
     parser = argparse.ArgumentParser(
@@ -44,19 +45,28 @@ def main(argv: list[str] | None = None) -> None:
     model.load_state_dict(reference.state_dict())
     x = torch.rand(args.batch, 3, h, w)
     x_cl = x.contiguous(memory_format=torch.channels_last)
+    model_cl = DepthOutput(DispNet(wrap=True)).eval().to(memory_format=torch.channels_last)
+    model_cl.load_state_dict(reference.state_dict())
+    # as Predictor runs it where bf16 is native: a bf16 copy of the weights, fp32 images in and out
+    model_bf16 = copy.deepcopy(model_cl).to(torch.bfloat16) if native_bf16() else None
+    plain, packed = "plain convolutions", "weights laid out once"
     rows = []
-    with torch.inference_mode():
-        ref_ms = _median_ms(lambda: reference(x), args.reps)
-        rows.append(("SfMLearner configuration: pinhole, fp32, contiguous, eager", ref_ms))
-        rows.append(("cylsfm, PyTorch eager, contiguous", _median_ms(lambda: model(x), args.reps)))
-        model_cl = DepthOutput(DispNet(wrap=True)).eval().to(memory_format=torch.channels_last)
-        model_cl.load_state_dict(reference.state_dict())
-        rows.append(("cylsfm, PyTorch eager, channels_last", _median_ms(lambda: model_cl(x_cl), args.reps)))
-        if native_bf16():  # as Predictor runs it there: a bf16 copy of the weights, fp32 images in and out
-            model_bf16 = copy.deepcopy(model_cl).to(torch.bfloat16)
+    with torch.no_grad():
+        with plain_convolutions():
+            ref_ms = _median_ms(lambda: reference(x), args.reps)
+            rows.append(("SfMLearner configuration: pinhole, fp32, contiguous, eager", ref_ms))
+            rows.append((f"cylsfm, contiguous, {plain}", _median_ms(lambda: model(x), args.reps)))
+            rows.append((f"cylsfm, channels_last, {plain}", _median_ms(lambda: model_cl(x_cl), args.reps)))
+        ms = _median_ms(lambda: model_cl(x_cl), args.reps)
+        rows.append((f"cylsfm, channels_last, {packed}" + ("" if model_bf16 else " (the default here)"), ms))
+        if model_bf16 is not None:
+            bf16 = "channels_last, bf16 network"
+            with plain_convolutions():
+                ms = _median_ms(lambda: model_bf16(x_cl).float(), args.reps)
+            rows.append((f"cylsfm, {bf16}, {plain}", ms))
             rows.append(
                 (
-                    "cylsfm, PyTorch eager, channels_last, bf16 network (native bf16: the default)",
+                    f"cylsfm, {bf16}, {packed} (the default here)",
                     _median_ms(lambda: model_bf16(x_cl).float(), args.reps),
                 )
             )

@@ -19,6 +19,7 @@ from torch import nn
 
 from ..errors import InputError
 from ..geometry.seam import resize_image
+from .packed import PackedWeights
 from .padding import circular_pad, pad_cat, relu_pad
 from .small_maps import conv2d_rows_padded, conv_transpose2d_small
 
@@ -124,16 +125,19 @@ class WrapConv2d(nn.Conv2d):
         super().__init__(in_channels, out_channels, kernel_size, stride=stride, padding=pad, bias=bias)
         self.wrap = wrap
         self.pad = pad
+        #: the weight laid out for oneDNN at inference (:mod:`cylsfm.nn.packed`; never saved)
+        self.packed_weights = PackedWeights()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Convolve ``x`` ``[B, in_channels, H, W]`` -> ``[B, out_channels, H_out, W_out]``."""
         if not self.wrap or self.pad == 0:
-            return super().forward(x)
+            out = self.packed_weights.conv2d(x, self.weight, self.bias, self.stride, self.padding)
+            return super().forward(x) if out is None else out
         return self.forward_padded(circular_pad(x, self.pad, self.pad))
 
     def forward_padded(self, x: torch.Tensor) -> torch.Tensor:
         """Convolve an input already padded circularly by ``self.pad`` columns (see :func:`pad_cat`)."""
-        return conv2d_rows_padded(x, self.weight, self.bias, self.stride, self.pad)
+        return conv2d_rows_padded(x, self.weight, self.bias, self.stride, self.pad, self.packed_weights)
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, wrap={self.wrap}"
@@ -199,17 +203,25 @@ class WrapConvTranspose2d(nn.ConvTranspose2d):
         self.wrap = wrap
         self.wrap_left = max(0, (kernel_size - 1 - pad) // stride)
         self.wrap_right = (stride - 1 + pad) // stride
+        #: the weight laid out for oneDNN at inference (:mod:`cylsfm.nn.packed`; never saved)
+        self.packed_weights = PackedWeights()
+
+    def _up(self, x: torch.Tensor) -> torch.Tensor:
+        return conv_transpose2d_small(
+            x, self.weight, self.bias, self.stride, self.padding, self.output_padding, self.packed_weights
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         """Up-convolve ``x`` ``[B, in_channels, H, W]`` -> ``[B, out_channels, s*H, s*W]``."""
         if not self.wrap:
-            return super().forward(x)
+            out = self.packed_weights.conv_transpose2d(
+                x, self.weight, self.bias, self.stride, self.padding, self.output_padding
+            )
+            return super().forward(x) if out is None else out
         s = self.stride[1]
         width = x.shape[-1]
         xp = circular_pad(x, self.wrap_left, self.wrap_right)
-        out = conv_transpose2d_small(
-            xp, self.weight, self.bias, self.stride, self.padding, self.output_padding
-        )
+        out = self._up(xp)
         start = s * self.wrap_left
         return out[..., start : start + s * width]
 
@@ -232,10 +244,7 @@ class WrapConvTranspose2d(nn.ConvTranspose2d):
                 f"forward_padded: padding {pad} is less than the {max(self.wrap_left, self.wrap_right)} "
                 "columns the up-convolution needs"
             )
-        out = conv_transpose2d_small(
-            xp, self.weight, self.bias, self.stride, self.padding, self.output_padding
-        )
-        return out, self.stride[1] * pad
+        return self._up(xp), self.stride[1] * pad
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, wrap={self.wrap}"

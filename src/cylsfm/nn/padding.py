@@ -20,7 +20,7 @@ from ..errors import InputError
 from ..geometry import seam
 from ..geometry.seam import memory_format_of
 
-__all__ = ["circular_pad", "pad_cat", "relu_pad", "standard_ops"]
+__all__ = ["circular_pad", "pad_cat", "relu_pad", "standard_ops", "tracing"]
 
 
 class _CircularPadWidth(torch.autograd.Function):
@@ -71,8 +71,13 @@ def standard_ops() -> Iterator[None]:
         _STANDARD_OPS = previous
 
 
-def _plain() -> bool:
+def tracing() -> bool:
+    """Whether an exporter (inside :func:`standard_ops`) or a compiler is tracing the networks now."""
     return _STANDARD_OPS or torch.compiler.is_compiling()
+
+
+def _plain() -> bool:
+    return tracing()
 
 
 def circular_pad(x: torch.Tensor, left: int, right: int) -> torch.Tensor:

@@ -19,6 +19,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .packed import PackedWeights
+
 __all__ = ["MAX_POSITIONS", "conv2d_rows_padded", "conv_transpose2d_small"]
 
 #: Largest output (rows x columns per image) computed as a matrix product; measured on an AVX2 CPU:
@@ -32,7 +34,12 @@ def _matmul_wanted(x: Tensor, positions: int) -> bool:
 
 
 def conv2d_rows_padded(
-    x: Tensor, weight: Tensor, bias: Tensor | None, stride: int | tuple[int, int], pad_rows: int
+    x: Tensor,
+    weight: Tensor,
+    bias: Tensor | None,
+    stride: int | tuple[int, int],
+    pad_rows: int,
+    packed: PackedWeights | None = None,
 ) -> Tensor:
     """``F.conv2d(x, weight, bias, stride, padding=(pad_rows, 0))``, faster on tiny maps.
 
@@ -42,12 +49,18 @@ def conv2d_rows_padded(
         bias: ``[C_out]`` or None.
         stride: stride (both directions, or ``(rows, columns)``).
         pad_rows: zero rows added above and below.
+        packed: the layer's :class:`~cylsfm.nn.packed.PackedWeights` (``weight`` its own parameter):
+            at inference on the CPU the convolution runs on its laid-out weight.
 
     Returns:
         ``[B, C_out, H_out, W_out]`` with ``H_out = (H + 2 pad_rows - k) // s + 1``,
         ``W_out = (W - k) // s + 1``.
     """
     sh, sw = (stride, stride) if isinstance(stride, int) else stride
+    if packed is not None:
+        out = packed.conv2d(x, weight, bias, (sh, sw), (pad_rows, 0))
+        if out is not None:
+            return out
     k_rows, k_cols = weight.shape[-2:]
     height, width = x.shape[-2:]
     if MAX_POSITIONS and height == 1 and k_rows == 2 * pad_rows + 1:
@@ -72,6 +85,7 @@ def conv_transpose2d_small(
     stride: tuple[int, int],
     padding: tuple[int, int],
     output_padding: tuple[int, int],
+    packed: PackedWeights | None = None,
 ) -> Tensor:
     """``F.conv_transpose2d(x, weight, bias, stride, padding, output_padding)``, faster on tiny maps.
 
@@ -80,10 +94,15 @@ def conv_transpose2d_small(
         weight: ``[C_in, C_out, k, k]`` (the transposed convolution's layout).
         bias: ``[C_out]`` or None.
         stride, padding, output_padding: as for ``F.conv_transpose2d``.
+        packed: the layer's :class:`~cylsfm.nn.packed.PackedWeights` (see :func:`conv2d_rows_padded`).
 
     Returns:
         ``[B, C_out, H_out, W_out]``, ``H_out = (H - 1) s - 2 p + k + output_padding``, likewise ``W_out``.
     """
+    if packed is not None:
+        out = packed.conv_transpose2d(x, weight, bias, stride, padding, output_padding)
+        if out is not None:
+            return out
     k_rows, k_cols = weight.shape[-2:]
     height, width = x.shape[-2:]
     if not _matmul_wanted(x, height * width):

@@ -12,6 +12,8 @@ same run, the ceiling that a convolutional network can reach on this machine.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import json
 import multiprocessing as mp
 import platform
@@ -65,7 +67,7 @@ def train_step_bench(
     channels_last: bool,
     cylindrical: bool = True,
     loss: str = "paper",
-    fused_adam: bool = True,
+    adam: str = "cylsfm",
     small_maps: bool = True,
     amp: bool = False,
 ) -> dict:
@@ -75,6 +77,8 @@ def train_step_bench(
     from cylsfm.losses import LossConfig, view_synthesis_loss
     from cylsfm.nn import DispNet, PoseExpNet
     from cylsfm.nn import small_maps as small_maps_module
+    from cylsfm.nn.packed import plain_convolutions
+    from cylsfm.train.optim import Adam
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)
@@ -86,7 +90,10 @@ def train_step_bench(
     disp_net = DispNet(wrap=cylindrical).to(memory_format=fmt)
     pose_net = PoseExpNet(n_sources=2, explainability=loss == "paper", wrap=cylindrical).to(memory_format=fmt)
     params = list(disp_net.parameters()) + list(pose_net.parameters())
-    opt = torch.optim.Adam(params, lr=2e-4, betas=(0.9, 0.999), fused=True if fused_adam else None)
+    # cylsfm: the trainer's fused Adam that reads channels-last weights in place; torch: torch's fused Adam
+    # (which copies them, the code before); plain: torch's default Adam (SfMLearner's configuration)
+    optimizer = Adam if adam == "cylsfm" else torch.optim.Adam
+    opt = optimizer(params, lr=2e-4, betas=(0.9, 0.999), fused=True if adam != "plain" else None)
     camera = (
         CylindricalCamera.full(width, height) if cylindrical else PinholeCamera.from_fov(width, height, 90)
     )
@@ -134,10 +141,11 @@ def train_step_bench(
 
     disp_net.eval()
     one = torch.rand(1, 3, height, width).contiguous(memory_format=fmt)
-    with torch.inference_mode():
+    # SfMLearner's configuration is eager PyTorch: its convolutions lay their weights out at every call
+    with torch.inference_mode(), plain_convolutions() if not cylindrical else contextlib.nullcontext():
         t_inf = median_time(lambda: networks(one), max(reps, 10), warmup=2)
         counter = FlopCounterMode(display=False)
-        with counter:
+        with counter, plain_convolutions():  # the counter knows aten's convolutions, not oneDNN's own
             networks(one)
         inf_flops = counter.get_total_flops()
     return {
@@ -146,7 +154,7 @@ def train_step_bench(
         "loss": loss,
         "batch": batch,
         "channels_last": channels_last,
-        "fused_adam": fused_adam,
+        "adam": adam,
         "small_maps": small_maps,
         "amp": amp,
         "step_s": t_step,
@@ -193,6 +201,13 @@ def main(argv: list[str] | None = None) -> None:
         default="both",
         help="cylindrical rows with the networks in bf16 (on a CPU with native bf16: AVX-512 BF16 or AMX)",
     )
+    parser.add_argument(
+        "--adam",
+        choices=["cylsfm", "torch", "both"],
+        default="cylsfm",
+        help="cylindrical rows: the trainer's Adam (fused, channels-last weights read in place) or torch's "
+        "fused Adam (which copies them); the reference always uses torch's default Adam",
+    )
     parser.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args(argv)
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
@@ -205,24 +220,16 @@ def main(argv: list[str] | None = None) -> None:
         rows = []
         for w, h in sizes:
             for cl in formats:
-                for small in {"on": [True], "off": [False], "both": [False, True]}[args.small_maps]:
-                    for amp in {"on": [True], "off": [False], "both": [False, True]}[args.amp]:
-                        job = (
-                            w,
-                            h,
-                            args.batch,
-                            args.threads,
-                            args.steps,
-                            cl,
-                            True,
-                            args.loss,
-                            True,
-                            small,
-                            amp,
-                        )
-                        rows.append(pool.apply(_run, (("step", job),)))
+                choices = itertools.product(
+                    {"on": [True], "off": [False], "both": [False, True]}[args.small_maps],
+                    {"on": [True], "off": [False], "both": [False, True]}[args.amp],
+                    {"cylsfm": ["cylsfm"], "torch": ["torch"], "both": ["torch", "cylsfm"]}[args.adam],
+                )
+                for small, amp, adam in choices:
+                    job = (w, h, args.batch, args.threads, args.steps, cl, True, args.loss, adam, small, amp)
+                    rows.append(pool.apply(_run, (("step", job),)))
             if not args.no_pinhole:  # SfMLearner's own configuration: pinhole, contiguous, plain Adam
-                job = (w, h, args.batch, args.threads, args.steps, False, False, args.loss, False)
+                job = (w, h, args.batch, args.threads, args.steps, False, False, args.loss, "plain")
                 rows.append(pool.apply(_run, (("step", job),)))
         results["conv_after"] = pool.apply(_run, (("conv", (args.threads, 15)),))
     ceiling = max(results["conv"]["conv_fwd_gflops"], results["conv_after"]["conv_fwd_gflops"])
@@ -246,6 +253,8 @@ def main(argv: list[str] | None = None) -> None:
             fmt += ", plain Adam (reference)"
         elif not r["small_maps"]:
             fmt += ", small maps by oneDNN"
+        if r["model"] != "pinhole" and r["adam"] == "torch":
+            fmt += ", torch's fused Adam"
         if r["amp"]:
             fmt += ", bf16 networks"
         ratio = f"{r['step_s'] / reference[r['size']]:.2f}x" if r["size"] in reference else "-"

@@ -40,6 +40,7 @@ from ..model.config import TrainConfig, config_from_dict, config_to_dict, resume
 from ..runtime import autocast_dtype, network_precision, prefers_channels_last, progress_bar
 from .distributed import init_distributed
 from .objective import Objective, SfMNet, batch_on
+from .optim import Adam
 from .rng import restore_rng, rng_state
 from .sampler import ResumableSampler, SeededDataset
 from .scaffold import SlotPriorScaffold
@@ -118,7 +119,7 @@ class Trainer:
         if self.channels_last:
             self.model = self.model.to(memory_format=torch.channels_last)
         fused = self.device.type in ("cuda", "cpu")
-        self.optimizer = torch.optim.Adam(
+        self.optimizer = Adam(  # torch's, without copying channels-last weights in its fused update
             self.model.parameters(),
             lr=cfg.optim.lr,
             betas=(cfg.optim.beta1, cfg.optim.beta2),

@@ -456,7 +456,9 @@ class EquirectangularCamera(Camera):
         return torch.stack((c * torch.sin(theta), torch.sin(phi), c * torch.cos(theta)), 1)
 
     def depth_of(self, points: Tensor) -> Tensor:
-        return torch.linalg.vector_norm(points[:, 0:3], dim=1, keepdim=True)
+        # not torch.linalg.vector_norm(dim=1): on the CPU its reduction across channels of a [B,3,H,W]
+        # map runs about 200x slower than these element-wise operations (torch 2.13)
+        return points[:, 0:3].square().sum(1, keepdim=True).sqrt()
 
     def projectable(self, points: Tensor) -> Tensor:
         return (points[:, 0:1] ** 2 + points[:, 2:3] ** 2) > _EPS * _EPS

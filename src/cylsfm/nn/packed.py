@@ -131,6 +131,21 @@ class PackedWeights:
             packed = self._entries[key] = make()
         return packed
 
+    def _convolve(
+        self,
+        x: Tensor,
+        weight: Tensor,
+        geometry: tuple,
+        make: Callable[[], Tensor],
+        run: Callable[[Tensor], Tensor],
+        bias: Tensor | None,
+    ) -> Tensor | None:
+        """``run`` on the laid-out weight (made by ``make`` once per input shape), or ``None``."""
+        if not _usable(x, weight, bias):
+            return None
+        packed = self._get((*geometry, tuple(x.shape), x.dtype), weight, make)
+        return _layout_of(run(packed), x)
+
     def conv2d(
         self,
         x: Tensor,
@@ -150,21 +165,19 @@ class PackedWeights:
         Returns:
             ``[B, C_out, H_out, W_out]`` in ``x``'s memory format, or ``None`` (not applicable here).
         """
-        if not _usable(x, weight, bias):
-            return None
         stride, padding = [int(s) for s in stride], [int(p) for p in padding]
-        key = ("conv", tuple(x.shape), x.dtype, tuple(stride), tuple(padding))
-        packed = self._get(
-            key,
+        return self._convolve(
+            x,
             weight,
+            ("conv", tuple(stride), tuple(padding)),
             lambda: torch.ops.aten.mkldnn_reorder_conv2d_weight(
                 weight.detach().to_mkldnn(), padding, stride, [1, 1], 1, list(x.shape)
             ),
+            lambda packed: torch.ops.mkldnn._convolution_pointwise(
+                x, packed, bias, padding, stride, [1, 1], 1, "none", [], ""
+            ),
+            bias,
         )
-        out = torch.ops.mkldnn._convolution_pointwise(
-            x, packed, bias, padding, stride, [1, 1], 1, "none", [], ""
-        )
-        return _layout_of(out, x)
 
     def conv_transpose2d(
         self,
@@ -187,22 +200,20 @@ class PackedWeights:
         Returns:
             ``[B, C_out, H_out, W_out]`` in ``x``'s memory format, or ``None`` (not applicable here).
         """
-        if not _usable(x, weight, bias):
-            return None
         stride, padding = [int(s) for s in stride], [int(p) for p in padding]
         output_padding = [int(p) for p in output_padding]
-        key = ("transposed", tuple(x.shape), x.dtype, tuple(stride), tuple(padding), tuple(output_padding))
-        packed = self._get(
-            key,
+        return self._convolve(
+            x,
             weight,
+            ("transposed", tuple(stride), tuple(padding), tuple(output_padding)),
             lambda: torch.ops.mkldnn._reorder_convolution_transpose_weight(
                 weight.detach(), padding, output_padding, stride, [1, 1], 1, list(x.shape)
             ),
+            lambda packed: torch.ops.mkldnn._convolution_transpose_pointwise(
+                x, packed, bias, padding, output_padding, stride, [1, 1], 1, "none", [], ""
+            ),
+            bias,
         )
-        out = torch.ops.mkldnn._convolution_transpose_pointwise(
-            x, packed, bias, padding, output_padding, stride, [1, 1], 1, "none", [], ""
-        )
-        return _layout_of(out, x)
 
 
 def _layout_of(out: Tensor, x: Tensor) -> Tensor:

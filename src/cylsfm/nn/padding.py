@@ -76,16 +76,12 @@ def tracing() -> bool:
     return _STANDARD_OPS or torch.compiler.is_compiling()
 
 
-def _plain() -> bool:
-    return tracing()
-
-
 def circular_pad(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
     """``x [..., W]`` padded circularly by ``left`` / ``right`` columns: the values (arguments, shapes and
     memory format) of :func:`cylsfm.geometry.seam.circular_pad`, with a lean backward pass where neither
     pad exceeds ``W``."""
     w = x.shape[-1]
-    if (left or right) and left <= w and right <= w and not _plain():
+    if (left or right) and left <= w and right <= w and not tracing():
         return _CircularPadWidth.apply(x, left, right)
     return seam.circular_pad(x, left, right)
 
@@ -179,7 +175,7 @@ def pad_cat(
     if not circular:
         cat = torch.cat([p[..., s : s + width] for p, s in zip(parts, starts_t, strict=True)], 1)
         return F.pad(cat, (pad, pad)).contiguous(memory_format=fmt)
-    if _plain():
+    if tracing():
         return circular_pad(
             torch.cat([p[..., s : s + width] for p, s in zip(parts, starts_t, strict=True)], 1), pad, pad
         )
@@ -244,6 +240,6 @@ def relu_pad(
     height, start, width = window if window is not None else (y.shape[-2], 0, y.shape[-1])
     if not circular:
         return F.pad(torch.relu(y[..., :height, start : start + width]), (pad, pad))
-    if pad > width or _plain():  # tiny feature maps wrap around more than once
+    if pad > width or tracing():  # tiny feature maps wrap around more than once
         return circular_pad(torch.relu(y[..., :height, start : start + width]), pad, pad)
     return _ReLUPad.apply(y, int(pad), int(height), int(start), int(width))

@@ -21,7 +21,7 @@ from cylsfm.geometry import (
     rotation_y,
     yaw_matrix,
 )
-from cylsfm.geometry.align import photometric_inliers
+from cylsfm.geometry.photometric import photometric_inliers
 from cylsfm.geometry.ground import steady_height_steps
 from cylsfm.odometry import AlignConfig, align, ground_height, metric_scale
 
@@ -198,26 +198,25 @@ def test_inliers_insensitive_to_sampling_accept_a_long_baseline_and_still_reject
 
 def test_picking_among_starts_costs_only_residuals_and_gives_what_linearising_each_would():
     """The alignment picks the cheapest of its starts from their residuals alone and linearises only the
-    pose picked: the same pose, cost and linearisation as linearising every start."""
+    pose picked: the same pose, cost, residuals and Jacobian as linearising every start."""
     from cylsfm.geometry import align as align_module
+    from cylsfm.geometry import photometric
 
     cam = CylindricalCamera.full(64, 16)
     tgt, src, depth, true = _pair(cam, make_pose(0.0, 0.1, 0.0), make_pose(0.1, 0.1, 0.3, yaw_deg=10.0))
-    level = align_module._pyramid(tgt, src, depth, cam, True, 1)[0]
+    level = photometric.pyramid(tgt, src, depth, cam, True, 1)[0]
     starts = [torch.eye(4, dtype=torch.float64)[None], true[None].double(), (true @ true)[None].double()]
-    pose, index, cost, lin, k = align_module._pick(level, starts)
-    every = [align_module._linearize(level, p) for p in starts]
-    k_all = align_module._scale(every[0])
-    costs = torch.stack([align_module._cost(x, k_all) for x in every])
+    pose, index, cost, res, jac, k = align_module._pick(level, starts)
+    every = [photometric.residuals(level, p) for p in starts]
+    k_all = photometric.robust_scale(every[0][0])
+    costs = torch.stack([photometric.robust_cost(x[0], k_all) for x in every])
     assert (
         int(index) == int(costs.argmin(0)) == 1
         and torch.equal(k, k_all)
         and torch.equal(cost, costs.min(0).values)
     )
     assert torch.equal(pose, starts[1])
-    for got, want in zip(
-        (lin.r, lin.jac, lin.valid, lin.usable),
-        (every[1].r, every[1].jac, every[1].valid, every[1].usable),
-        strict=True,
-    ):
-        assert torch.equal(got, want)
+    want, points, sampled = every[1]
+    for got, expected in zip((res.r, res.valid, res.usable), (want.r, want.valid, want.usable), strict=True):
+        assert torch.equal(got, expected)
+    assert torch.equal(jac, photometric.jacobian(cam, points, sampled))

@@ -324,7 +324,9 @@ def test_the_shared_pairs_and_depth_give_the_same_trajectory(ckpt, ride, tmp_pat
     monkeypatch.setattr(odometry_run.Predictor, "ride_poses", plain)
     slow = cylsfm.odometry(ride, ckpt, tmp_path / "slow", settings)
     assert len(given) >= 2 and all(given)  # the search and the windows were handed it
-    np.testing.assert_allclose(fast.c2w, slow.c2w, atol=1e-5)
+    # float tolerance: the two read the frames in other batches, and on AVX2-only CPUs oneDNN's
+    # convolutions then round differently (1.1e-05 m over the ride, 2026-12-06, an AMD EPYC)
+    np.testing.assert_allclose(fast.c2w, slow.c2w, atol=5e-5)
 
 
 @pytest.mark.parametrize("facing_deg", [0.0, 1.2])

@@ -15,7 +15,7 @@
    the road is several metres across), in both directions (the second frame's depth aligned back to the
    first). A revisit is accepted when the two directions agree (their composition is near the identity)
    and most textured pixels fit (the inlier fraction of
-   :func:`~cylsfm.geometry.align.photometric_inliers`, both ways, insensitive to where the other frame
+   :func:`~cylsfm.geometry.photometric.photometric_inliers`, both ways, insensitive to where the other frame
    samples a texture within a pixel). Streets that only look alike are told apart by the odometry: a
    revisit must lie within its plausible drift (position and heading) and agree with its neighbours.
 
@@ -37,7 +37,8 @@ from torch import Tensor
 from ..errors import InputError
 from ..evaluate.motion import yaw_angle
 from ..geometry import Camera, compass_yaw, invert, sample_image, transform_points, yaw_matrix
-from ..geometry.align import AlignConfig, align, photometric_inliers
+from ..geometry.align import AlignConfig, align
+from ..geometry.photometric import photometric_inliers
 from ..geometry.place import place_distance
 
 __all__ = [
@@ -60,7 +61,7 @@ class LoopSettings:
         window: sequence matching over ``2 * window + 1`` frames around each.
         per_query: the nearest earlier frames each query frame keeps (apart by at least ``window``).
         max_pairs: pairs verified at most in a ride.
-        min_inliers: the smallest inlier fraction (both ways, :func:`~cylsfm.geometry.align.photometric_inliers`)
+        min_inliers: the smallest inlier fraction (both ways, :func:`~cylsfm.geometry.photometric.photometric_inliers`)
             of an accepted loop seen in much the same direction (a texture seen again at the same scale).
         turned_deg, min_inliers_turned: a revisit whose yaw is more than ``turned_deg`` degrees sees each
             texture from elsewhere (a street driven back on the other side of the road): its inliers are

@@ -22,7 +22,8 @@ import torch
 from torch import Tensor
 
 from ..geometry import Camera, compass_yaw, yaw_matrix
-from ..geometry.align import AlignConfig, align, half_size, photometric_costs
+from ..geometry.align import AlignConfig, align
+from ..geometry.photometric import half_size, photometric_costs
 
 __all__ = ["DIRECTIONS", "Mount", "mount_yaw"]
 

@@ -23,7 +23,7 @@ from ..data.io import write_tum
 from ..errors import CylsfmError, InputError
 from ..evaluate.pose_metrics import chain_poses
 from ..geometry import Camera, load_camera
-from ..geometry.align import resize_depth
+from ..geometry.photometric import resize_depth
 from ..geometry.ground import metric_scale, steady_height_steps
 from ..model import Predictor
 from ..model.checkpoint import checkpoint_id

@@ -21,8 +21,8 @@ from cylsfm.geometry import (
     rotation_y,
     yaw_matrix,
 )
-from cylsfm.geometry.photometric import photometric_inliers
 from cylsfm.geometry.ground import steady_height_steps
+from cylsfm.geometry.photometric import photometric_inliers
 from cylsfm.odometry import AlignConfig, align, ground_height, metric_scale
 
 
@@ -220,3 +220,11 @@ def test_picking_among_starts_costs_only_residuals_and_gives_what_linearising_ea
     for got, expected in zip((res.r, res.valid, res.usable), (want.r, want.valid, want.usable), strict=True):
         assert torch.equal(got, expected)
     assert torch.equal(jac, photometric.jacobian(cam, points, sampled))
+
+
+@pytest.mark.parametrize("kwargs", [{"levels": 0}, {"iterations": -1}, {"huber": 0.0}, {"damping": -1.0}])
+def test_settings_out_of_range_are_refused(kwargs):
+    from cylsfm.geometry.align import AlignConfig
+
+    with pytest.raises(InputError, match="must be"):
+        AlignConfig(**kwargs)

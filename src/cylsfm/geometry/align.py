@@ -31,10 +31,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ShapeError, check_shape
+from ..errors import InputError, ShapeError, check_shape
 from .cameras import Camera
 from .photometric import (
     Level,

@@ -23,8 +23,8 @@ from ..data.io import write_tum
 from ..errors import CylsfmError, InputError
 from ..evaluate.pose_metrics import chain_poses
 from ..geometry import Camera, load_camera
-from ..geometry.photometric import resize_depth
 from ..geometry.ground import metric_scale, steady_height_steps
+from ..geometry.photometric import resize_depth
 from ..model import Predictor
 from ..model.checkpoint import checkpoint_id
 from ..model.plan import model_vfov_h, network_images, network_mask, plan_input

@@ -228,3 +228,20 @@ def test_settings_out_of_range_are_refused(kwargs):
 
     with pytest.raises(InputError, match="must be"):
         AlignConfig(**kwargs)
+
+
+@pytest.mark.parametrize("camera", [CylindricalCamera.full(64, 16), PinholeCamera.from_fov(64, 16, 90.0)])
+def test_the_jacobian_is_the_image_gradient_through_the_projection(camera):
+    """The residuals' Jacobian (formed in place for the cylinder) is ``grad I . dproject/dP . [I | -[P]x]``
+    written out with the projection's own derivative."""
+    from cylsfm.geometry import photometric, projection_jacobian
+
+    g = torch.Generator().manual_seed(0)
+    points = torch.randn(2, 3, 16, 64, generator=g) + torch.tensor([0.0, 0.0, 3.0]).reshape(1, 3, 1, 1)
+    sampled = torch.randn(2, 3, 16, 64, generator=g)
+    jp = projection_jacobian(camera, points)
+    grad = sampled[:, 1:2] * jp[:, 0] + sampled[:, 2:3] * jp[:, 1]
+    want = torch.cat((grad, torch.linalg.cross(points, grad, dim=1)), 1)
+    got = photometric.jacobian(camera, points, sampled)
+    assert got.shape == (2, 6, 16, 64)
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4 * float(want.abs().max()))

@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..errors import InputError, ShapeError, check_shape
-from .cameras import Camera, CylindricalCamera
+from .cameras import Camera
 from .jacobian import projection_jacobian
 from .seam import circular_pad
 from .warp import sample_image, transform_points
@@ -34,8 +34,6 @@ __all__ = ["half_size", "photometric_costs", "photometric_inliers", "resize_dept
 _LUMA = (0.299, 0.587, 0.114)
 #: The smallest image height a pyramid level may have.
 MIN_HEIGHT = 8
-#: The smallest squared horizontal distance of a point from the axis (as in jacobian.py).
-_EPS = 1e-8
 
 
 @dataclass
@@ -178,33 +176,13 @@ def jacobian(camera: Camera, points: Tensor, sampled: Tensor) -> Tensor:
     """The derivative of the residuals with respect to a left increment ``d = (v, w)`` of the pose
     (translation, axis-angle), ``dI/dd = grad I_s . dproject/dP . [I | -[P]x]``: ``[B,6,h,w]`` from the moved
     points ``[B,3,h,w]`` and the source sampled there with its derivatives along u and v ``[B,>=3,h,w]``
-    (:func:`residuals`). For a cylindrical camera with one set of intrinsics it is formed in place, without
-    the 2x3 projection derivative (about a third of the time; the same values to float rounding)."""
-    b, _, h, w = points.shape
-    jac = points.new_empty(b, 6, h, w)
-    gx, gy, gz = jac[:, 0], jac[:, 1], jac[:, 2]  # dI/dP
-    x, y, z = points.unbind(1)
-    if (
-        isinstance(camera, CylindricalCamera)
-        and not isinstance(camera.fx, Tensor)
-        and not isinstance(camera.fy, Tensor)
-    ):
-        # u = fx atan2(x, z) + cx, v = fy y / r + cy, r^2 = x^2 + z^2 (jacobian.py): with a = I_u fx / r^2
-        # and c = I_v fy / r^3, dI/dP = (a z - c y x, c r^2, -a x - c y z)
-        r2 = (x * x + z * z).clamp(min=_EPS)
-        a = sampled[:, 1] * (float(camera.fx) / r2)
-        c = sampled[:, 2] * float(camera.fy) / (r2 * r2.sqrt())
-        cy = c * y
-        torch.mul(a, z, out=gx).addcmul_(cy, x, value=-1)
-        torch.mul(c, r2, out=gy)
-        torch.mul(a, x, out=gz).addcmul_(cy, z).neg_()
-    else:
-        jp = projection_jacobian(camera, points)  # [B,2,3,h,w]
-        torch.add(sampled[:, 1:2] * jp[:, 0], sampled[:, 2:3] * jp[:, 1], out=jac[:, :3])
-    torch.mul(y, gz, out=jac[:, 3]).addcmul_(z, gy, value=-1)  # points x dI/dP
-    torch.mul(z, gx, out=jac[:, 4]).addcmul_(x, gz, value=-1)
-    torch.mul(x, gy, out=jac[:, 5]).addcmul_(y, gx, value=-1)
-    return jac
+    (:func:`residuals`)."""
+    jp = projection_jacobian(camera, points)  # [B,2,3,h,w]
+    g = sampled[:, 1:2] * jp[:, 0] + sampled[:, 2:3] * jp[:, 1]  # dI/dP [B,3,h,w]
+    px, py, pz = points.unbind(1)
+    gx, gy, gz = g.unbind(1)
+    rot = torch.stack((py * gz - pz * gy, pz * gx - px * gz, px * gy - py * gx), 1)  # points x g
+    return torch.cat((g, rot), 1)
 
 
 def robust_scale(lin: Residuals) -> Tensor:

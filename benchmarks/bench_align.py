@@ -16,12 +16,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+from bench_train_step import median_time  # the benchmarks' one timer (from this folder)
 
 
 def worker(size: tuple[int, int], batch: int, reps: int, out: Path) -> dict:
@@ -39,14 +39,12 @@ def worker(size: tuple[int, int], batch: int, reps: int, out: Path) -> dict:
     source = torch.roll(target, 2, -1)
     init = torch.eye(4, dtype=torch.float64).repeat(batch, 2, 1, 1)
     init[:, 0, 2, 3] = 0.1
-    result = align(target, source, depth, init, cam)  # warm-up
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        result = align(target, source, depth, init, cam)
-        times.append(time.perf_counter() - t)
+    result = align(target, source, depth, init, cam)
+    seconds = median_time(
+        lambda: align(target, source, depth, init, cam), reps, warmup=0
+    )  # the call above warmed up
     torch.save({k: getattr(result, k) for k in ("poses", "cost", "start_cost", "start", "valid")}, out)
-    return {"ms": 1e3 * statistics.median(times)}
+    return {"ms": 1e3 * seconds}
 
 
 def _run(code: str | None, args: argparse.Namespace, out: Path) -> dict:

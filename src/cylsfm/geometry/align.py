@@ -152,15 +152,15 @@ def _lm(
         if not bool(better.any()):
             continue
         cand_hess, cand_grad = _normal_equations(cand_res, jacobian(lv.camera, points, sampled), k)
-        hess = torch.where(better.reshape(-1, 1, 1), cand_hess, hess)
+        per_matrix, per_map = better.reshape(-1, 1, 1), better.reshape(-1, 1, 1, 1)
+        hess = torch.where(per_matrix, cand_hess, hess)
         grad = torch.where(better.reshape(-1, 1), cand_grad, grad)
-        sel = better.reshape(-1, 1, 1, 1)
         res = Residuals(
-            torch.where(sel, cand_res.r, res.r),
-            torch.where(sel, cand_res.valid, res.valid),
+            torch.where(per_map, cand_res.r, res.r),
+            torch.where(per_map, cand_res.valid, res.valid),
             torch.where(better, cand_res.usable, res.usable),
         )
-        pose = torch.where(better.reshape(-1, 1, 1), cand, pose)
+        pose = torch.where(per_matrix, cand, pose)
         cost = torch.where(better, cand_cost, cost)
     return pose, cost, res
 

@@ -245,7 +245,7 @@ class _OraclePoses:
         ]
         self.c2w = seq.poses
         self.turn = turn
-        self.config = type("C", (), {"data": type("D", (), {"seq_length": 3, "stride": 1})()})()
+        self.window_length, self.frame_stride = 3, 1
 
     def _locate(self, image):
         w = image.shape[-1]

@@ -169,7 +169,7 @@ class _SlotPrior:
     """A pose network that ignores its input: the frame before the target is one step back, the frame
     after it one step forward, never a turn (what the paper's head learned on forward-only rides)."""
 
-    config = type("C", (), {"data": type("D", (), {"seq_length": 3, "stride": 1})()})()
+    window_length, frame_stride = 3, 1
 
     def poses(self, target, sources, camera):
         out = np.tile(np.eye(4), (target.shape[0], 2, 1, 1))

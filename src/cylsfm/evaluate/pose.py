@@ -177,7 +177,7 @@ def _open_run(given: Any, chosen: list[SequenceInfo], stride: int | None, **opti
     source = model_source(given)
     if getattr(given, "pose_iterations", 0):
         source += f", {given.pose_iterations} pose iterations"
-    return _Run(given, {}, source, int(stride or given.config.data.stride), **options)
+    return _Run(given, {}, source, int(stride or given.frame_stride), **options)
 
 
 def _estimate(
@@ -189,7 +189,7 @@ def _estimate(
     a warning)."""
     if run.predictor is None:
         return (*read_matched(run.files[seq.name], times), None)
-    seq_length = int(run.predictor.config.data.seq_length)
+    seq_length = int(run.predictor.window_length)
     if len(index) < seq_length:
         warnings.warn(
             f"{seq.path}: {len(index)} frames (stride {run.step}) are fewer than one window of {seq_length}; "

@@ -75,7 +75,7 @@ def predict_windows(
     """Run the pose network on every full window of a chain of frames (see :class:`WindowPoses`).
 
     Args:
-        predictor: a :class:`cylsfm.model.Predictor` (``.poses``, ``.config.data.seq_length``).
+        predictor: a :class:`cylsfm.model.Predictor` (``.poses``, ``.window_length``).
         images: the chain's image files in time order (``M >= seq_length``).
         camera: their camera.
         batch_size: windows per network call.
@@ -86,7 +86,7 @@ def predict_windows(
             sequence's ``mask.png``), which the network sees filled; rolled with the frames.
     """
     masked = {"mask": _mask_tensor(mask, roll)} if mask is not None else {}
-    seq_length = int(predictor.config.data.seq_length)
+    seq_length = int(predictor.window_length)
     k = (seq_length - 1) // 2
     centres = list(range(k, len(images) - k))
     chunks = [centres[i : i + batch_size] for i in range(0, len(centres), batch_size)]

@@ -87,9 +87,17 @@ class Predictor:
             self.disp_net = _inference_copy(models.disp_net, bf16, fmt)
             self.pose_net = _inference_copy(models.pose_net, bf16, fmt)
         self.config = models.config
+        #: the network's input size ``(W, H)`` in pixels (a crop's full turn for a model of crops)
         self.size = (models.config.data.width, models.config.data.height)
+        #: the horizontal field of view (degrees) the networks see
         self.fov = models.config.data.fov
+        #: whether the networks' convolutions wrap around the seam
         self.wrap = models.config.wrap
+        #: frames the pose network reads at once: a target with ``(window_length - 1) // 2`` sources on
+        #: each side
+        self.window_length = int(models.config.data.seq_length)
+        #: frames between two of a window's frames in training (the spacing of the steps it learned)
+        self.frame_stride = int(models.config.data.stride)
         pairs = bool(models.pose_net.pairs)
         if pose_iterations is None:
             pose_iterations = DEFAULT_POSE_ITERATIONS if pairs else 0

@@ -293,7 +293,7 @@ def _track(
     finally:
         bar.close()
     m = state.next_frame
-    need = int(predictor.config.data.seq_length)
+    need = int(predictor.window_length)
     if m < need:
         raise CylsfmError(f"{ride.path}: {m} frames; a trajectory needs at least {need}")
     tracker.finish(m)

@@ -120,7 +120,7 @@ class Tracker:
         self.on_depth = on_depth
         self.find_mount = options.find_mount and self.view.wraps
         self.places = options.places and self.view.wraps
-        self.k = (int(predictor.config.data.seq_length) - 1) // 2
+        self.k = (int(predictor.window_length) - 1) // 2
         w, h = predictor.size
         if mask is not None and tuple(mask.shape) != (1, 1, h, w):
             raise ShapeError(f"mask must be [1,1,{h},{w}] (the network's size), got {tuple(mask.shape)}")

@@ -13,7 +13,11 @@ def _depth_source(p: argparse.ArgumentParser) -> None:
     src.add_argument("--checkpoint", help="predict the depth with this checkpoint file or run directory")
     src.add_argument("--depth", help="the depth as a .npy file (cylindrical depth in metres, 0 unknown)")
     p.add_argument(
-        "--camera", help="the panorama's camera.json (default: its dataset sequence's, else a full cylinder)"
+        "--camera",
+        help="the panorama's camera.json. Default: its dataset sequence's camera.json when the panorama is "
+        "a dataset frame (SEQ/images/X.png); else, with --checkpoint, as 'cylsfm predict' decides (a 2:1 "
+        "frame is taken as equirectangular, one of the model's aspect as its full cylinder); with --depth, a "
+        "full 360-degree cylinder spanning +-45 degrees of elevation (--depth needs a full cylindrical camera)",
     )
     p.add_argument(
         "--camera-height",

@@ -63,3 +63,60 @@ def test_the_points_are_the_panoramas_back_projection(tmp_path, monkeypatch):
     theta = np.arctan2(points[:, 0], points[:, 2])  # columns 8..63: theta = (u - W/2) 2 pi / W
     assert theta.min() == pytest.approx((8 - 32) * 2 * math.pi / 64, abs=1e-5)
     assert _rerun("rrd", "verify", str(tmp_path / "r.rrd")).returncode == 0
+
+
+def _logged_camera_poses(recording) -> dict[int, np.ndarray]:
+    """Frame index -> the 4x4 transform stored for ``/world/camera`` in a recording file, read back."""
+    from rerun.chunk import RrdReader
+
+    poses = {}
+    for chunk in RrdReader(recording).stream():
+        if chunk.entity_path != "/world/camera":
+            continue
+        for row in chunk.to_record_batch().to_pylist():
+            relation = row.get("Transform3D:relation")
+            assert not relation or "ChildFromParent" not in str(relation), relation
+            pose = np.eye(4)
+            # rerun keeps a 3x3 matrix column after column
+            pose[:3, :3] = np.asarray(row["Transform3D:mat3x3"][0]).reshape(3, 3, order="F")
+            pose[:3, 3] = row["Transform3D:translation"][0]
+            poses[row["frame"]] = pose
+    return poses
+
+
+def test_the_camera_entity_holds_the_camera_to_world_pose(tmp_path):
+    """What the recording stores for ``world/camera`` at each frame is the camera-to-world pose given (rerun's
+    parent-from-child), not its inverse, and the trajectory runs through the cameras' centres."""
+    from rerun.chunk import RrdReader
+
+    from cylsfm.export.rerun import RerunWriter
+    from cylsfm.geometry.pose import rotation_x, rotation_y, rotation_z
+
+    cam = CylindricalCamera.full(64, 16)
+    depth = np.full((16, 64), 2.0, np.float32)
+    blank = np.zeros((16, 64, 3), np.uint8)
+    given = {}
+    writer = RerunWriter(tmp_path / "r.rrd", points_per_frame=50)
+    for index, (yaw, pitch, roll, centre) in enumerate(
+        [(0.7, 0.2, -0.1, (1.5, -0.3, 2.0)), (-1.2, -0.15, 0.25, (-0.5, 0.4, 3.5))]
+    ):
+        c2w = np.eye(4)
+        c2w[:3, :3] = rotation_y(np.array(yaw)) @ rotation_x(np.array(pitch)) @ rotation_z(np.array(roll))
+        c2w[:3, 3] = centre
+        given[index] = c2w
+        writer.add(index, 0.1 * index, blank, c2w, depth, cam, blank)
+    writer.finish()
+
+    logged = _logged_camera_poses(tmp_path / "r.rrd")
+    assert sorted(logged) == sorted(given)
+    for index, c2w in given.items():
+        np.testing.assert_allclose(
+            logged[index], c2w, atol=1e-6, err_msg=f"frame {index}: not the camera-to-world pose"
+        )
+    (trajectory,) = [
+        row["LineStrips3D:strips"][0]
+        for chunk in RrdReader(tmp_path / "r.rrd").stream()
+        if chunk.entity_path == "/world/trajectory"
+        for row in chunk.to_record_batch().to_pylist()
+    ]
+    np.testing.assert_allclose(trajectory, [given[i][:3, 3] for i in sorted(given)], atol=1e-6)

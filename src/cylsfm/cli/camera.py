@@ -11,8 +11,12 @@ from .base import command
 
 def _camera_args(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", required=True)
-    show = sub.add_parser("show", help="describe a camera.json")
-    show.add_argument("path", help="camera.json to read")
+    show = sub.add_parser(
+        "show",
+        help="describe a camera.json: its model, size and intrinsics, and for a cylinder its horizontal field "
+        "of view, whether it wraps around, and the elevations of its top and bottom rows",
+    )
+    show.add_argument("path", help="camera.json to read (a dataset sequence's, or one 'camera new' wrote)")
     new = sub.add_parser(
         "new",
         help="write the camera.json of a full 360-degree panorama (cylindrical by default) or a pinhole camera",

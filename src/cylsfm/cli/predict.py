@@ -13,10 +13,11 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output directory: OUT/NAME/FRAME.npy|png, OUT/NAME.mp4")
     p.add_argument(
         "--camera",
-        help="camera.json of the inputs (cylindrical, equirectangular or pinhole); without it inputs must be "
-        "full 360-degree cylindrical panoramas of the model's aspect ratio. Inputs that are not full "
-        "panoramas (pinhole photographs, partial panoramas) are taken only when they cover the view of a "
-        "model trained on crops (train --fov)",
+        help="camera.json of the inputs (cylindrical, equirectangular or pinhole). Without it an input of the "
+        "model's aspect ratio is taken as a full 360-degree cylindrical panorama, and a 2:1 input as an "
+        "equirectangular 360-degree panorama (unless the model's own aspect is 2:1); any other input is "
+        "refused. Inputs that are not full panoramas (pinhole photographs, partial panoramas) are taken "
+        "only when they cover the view of a model trained on crops (train --fov)",
     )
     p.add_argument(
         "--mask",

@@ -136,7 +136,15 @@ def _synthia_args(sub) -> None:
     sy.add_argument("out", metavar="OUT", help="the dataset root: sequences NN-SEASON-left|right")
     sy.add_argument("--sequences", nargs="+", metavar="NN", help="e.g. 02 05 (default: every one found)")
     sy.add_argument("--seasons", nargs="+", metavar="SEASON", help="e.g. spring summer fall (default: all)")
-    sy.add_argument("--stereo", nargs="+", choices=["left", "right"], default=["left", "right"])
+    sy.add_argument(
+        "--stereo",
+        nargs="+",
+        choices=["left", "right"],
+        default=["left", "right"],
+        metavar="SIDE",
+        help="which cameras of the stereo rig to prepare, left and/or right (default: both; each side "
+        "becomes its own sequence NN-SEASON-SIDE)",
+    )
     _band(sy, "512x128", 0.5, "the band all four views see")
     sy.add_argument(
         "--convention",

@@ -2,6 +2,7 @@ import json
 import math
 import re
 
+import matplotlib
 import numpy as np
 import pytest
 
@@ -80,5 +81,16 @@ def test_demo_runs_end_to_end_and_writes_a_report(tmp_path, capsys):
         picture = np.asarray(load_image(out / name))
         if name != "figures/loss.png":
             assert name.split("/")[1].rsplit("_", 1)[0] in test_seqs
-            assert picture.shape == (3 * 32 + 2 * 2, 128, 3)  # three 32-row panels, two separators
-            assert picture[32:34].min() == 255 and picture[:32].std() > 0  # the band, a real input
+            # readable: the 128x32 frames enlarged 8 times to 1024 pixels wide, three panels of 256 rows
+            # (input, prediction, ground truth), each under a 16-row title, then the colour scale
+            assert picture.shape[1] == 1024 and picture.shape[0] >= 3 * (16 + 2 + 256 + 2)
+            assert picture[18 : 18 + 256].std() > 0  # a real input under its title
+            lut = np.round(matplotlib.colormaps["magma"](np.linspace(0, 1, 256))[:, :3] * 255).astype(
+                np.uint8
+            )
+            ramp = lut[np.linspace(0, 255, 1024).round().astype(int)]
+            bar = np.flatnonzero((picture == ramp[None]).all(axis=2).mean(axis=1) > 0.95)
+            assert (
+                len(bar) >= 10 and bar.min() > 3 * (16 + 2 + 256 + 2) - 2
+            )  # the colour scale, at the bottom
+    assert "labelled in metres" in report

@@ -194,7 +194,14 @@ def _write_report(out, cfg, summary, depth, pose, depth_table, pose_table, predi
     lines += ["## Ego-motion (held-out towns)", "", "```", pose_table, "```", ""]
     lines += ["## Training loss", "", "![loss](figures/loss.png)", ""]
     if rows:
-        lines += ["## Pictures: input, predicted depth, ground truth (brighter = nearer)", ""]
+        lines += [
+            "## Pictures: input, predicted depth, ground truth",
+            "",
+            "Held-out frames enlarged to at least 1024 pixels wide. Depth is coloured by inverse depth, near "
+            "bright and far dark, on one scale for the prediction and the ground truth: the colour bar under "
+            "each picture is labelled in metres.",
+            "",
+        ]
         lines += [f"![{p.stem}](figures/{p.name})" for p in rows] + [""]
     plots = sorted((out / "trajectories").glob("*.png")) if (out / "trajectories").exists() else []
     if plots:
@@ -223,7 +230,7 @@ def _get(d: dict, key: str) -> float | None:
 def _picture(predictor, seq, idx: int, path: Path) -> Path:
     import torch
 
-    from .export.colorize import colorize_depth, side_by_side
+    from .export.colorize import depth_panels
 
     image = load_image(seq.images[idx])
     x = torch.from_numpy(np.array(image)).permute(2, 0, 1)[None].float() / 255
@@ -232,10 +239,19 @@ def _picture(predictor, seq, idx: int, path: Path) -> Path:
     valid = gt > 0
     if valid.any():  # show the prediction at the ground truth's scale, as the metrics see it
         pred = pred * np.median(gt[valid]) / np.median(pred[valid])
-    vmax = float(np.percentile(gt[valid], 95)) if valid.any() else None
-    vmin = float(np.percentile(gt[valid], 2)) if valid.any() else None
-    panel = side_by_side([image, colorize_depth(pred, vmin, vmax), colorize_depth(gt, vmin, vmax)])
-    save_png(path, panel)
+    # one colour scale for both, from the ground truth's 2nd to 95th percentile of depth (metres); without
+    # ground truth, the prediction's own range in its units
+    limits = (
+        (float(np.percentile(gt[valid], 2)), float(np.percentile(gt[valid], 95))) if valid.any() else None
+    )
+    unit = "metres" if valid.any() else "network units"
+    labels = [
+        f"input: held-out frame {seq.name}/{seq.images[idx].stem}",
+        "predicted depth" + (" (scaled to the ground truth's median)" if valid.any() else ""),
+        "ground truth (black: no depth, the sky)",
+    ]
+    # enlarged to at least 1024 px wide (the depth by repeating pixels), with the colour scale below
+    save_png(path, depth_panels(image, [pred, gt], unit, labels=labels, limits=limits))
     return path
 
 

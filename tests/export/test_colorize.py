@@ -92,3 +92,43 @@ def test_side_by_side_stacks_vertically_with_a_separator():
         side_by_side([a, np.zeros((4, 11, 3), np.uint8)])
     with pytest.raises(ValueError, match="uint8"):
         side_by_side([a.astype(np.float32)])
+
+
+def _bar_rows(picture: np.ndarray, cmap: str = "magma") -> np.ndarray:
+    """The rows of ``picture`` that are the colour scale: the colour map from its dark to its bright end
+    across the width (tick marks aside)."""
+    w = picture.shape[1]
+    lut = np.round(matplotlib.colormaps[cmap](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
+    ramp = lut[np.linspace(0, 255, w).round().astype(int)]
+    return np.flatnonzero((picture == ramp[None]).all(axis=2).mean(axis=1) > 0.95)
+
+
+def test_depth_panels_readable_size_labels_and_a_colour_scale():
+    """A 256x64 frame, its prediction and its ground truth: enlarged four times to 1024 pixels wide (the
+    depth by repeating pixels, so each panel is exactly the colourised depth), each under its title, one
+    colour scale for both depth maps, labelled in the unit."""
+    from cylsfm.export.colorize import depth_panels, depth_picture
+
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (64, 256, 3), dtype=np.uint8)
+    gt = np.tile(np.linspace(2.0, 40.0, 64, dtype=np.float32)[:, None], (1, 256))
+    gt[:8] = 0  # the sky: no depth
+    pred = gt * 1.1 + 0.5
+    labels = ["input", "predicted depth", "ground truth"]
+    pic = depth_panels(image, [pred, gt], "metres", labels=labels, limits=(2.0, 40.0))
+    assert pic.dtype == np.uint8 and pic.shape[1] == 1024
+    caption, sep = 16, 2
+    top = caption + sep + 256 + sep + caption + sep  # the prediction's panel starts here
+    np.testing.assert_array_equal(pic[top : top + 256 : 4, ::4], colorize_depth(pred, 2.0, 40.0))
+    top += 256 + sep + caption + sep  # the ground truth's
+    np.testing.assert_array_equal(pic[top : top + 256 : 4, ::4], colorize_depth(gt, 2.0, 40.0))
+    assert (pic[top : top + 32] == 0).all()  # its sky stays black (unknown)
+    bar = _bar_rows(pic)
+    assert len(bar) >= 10 and bar.min() > top + 256  # the colour scale, below the pictures
+    assert (pic[:caption].max(axis=2) > 150).any()  # a title's text
+    # without titles the panels follow each other directly; one depth map: the input above it
+    assert depth_panels(image, [pred, gt], limits=(2.0, 40.0)).shape[0] == pic.shape[0] - 3 * (caption + sep)
+    single = depth_picture(image, gt)
+    assert single.shape[1] == 1024 and len(_bar_rows(single)) >= 10
+    with pytest.raises(ValueError, match="labels"):
+        depth_panels(image, [pred, gt], labels=["only one"])

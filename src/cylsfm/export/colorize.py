@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import CylsfmError
 
-__all__ = ["colorize_depth", "depth_limits", "depth_picture", "side_by_side"]
+__all__ = ["colorize_depth", "depth_limits", "depth_panels", "depth_picture", "side_by_side"]
 
 #: Percentiles of the valid inverse depth mapped to the ends of the colour map when no limit is given.
 PERCENTILES = (5.0, 95.0)
@@ -131,6 +131,25 @@ def depth_limits(depth: np.ndarray) -> tuple[float, float] | None:
     return 1.0 / p_hi, 1.0 / p_lo
 
 
+def _font(scale: int):
+    """Pillow's default font at ``11 * scale`` pixels (a fixed bitmap font on Pillow < 10.1)."""
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=11 * scale)
+    except TypeError:
+        return ImageFont.load_default()
+
+
+def _caption(width: int, text: str, scale: int) -> np.ndarray:
+    """A black strip of ``width`` pixels with ``text`` in light grey: a panel's title."""
+    from PIL import Image, ImageDraw
+
+    im = Image.new("RGB", (width, 16 * scale))
+    ImageDraw.Draw(im).text((4, 2 * scale), text, fill=(220, 220, 220), font=_font(scale))
+    return np.asarray(im)
+
+
 def _ticks(vmin: float, vmax: float, n: int = 5) -> list[float]:
     """About ``n`` round depths between ``vmin`` and ``vmax``, evenly spread in inverse depth."""
     out = []
@@ -146,7 +165,7 @@ def _ticks(vmin: float, vmax: float, n: int = 5) -> list[float]:
 
 def _colour_bar(width: int, vmin: float, vmax: float, unit: str, cmap: str, scale: int) -> np.ndarray:
     """A strip: the colour map from far (left) to near (right) with depth labels below."""
-    from PIL import Image, ImageDraw, ImageFont
+    from PIL import Image, ImageDraw
 
     title_h, bar_h, text_h = 16 * scale, 12 * scale, 16 * scale
     ramp = np.linspace(0, 255, width).round().astype(np.intp)
@@ -154,10 +173,7 @@ def _colour_bar(width: int, vmin: float, vmax: float, unit: str, cmap: str, scal
     strip[title_h : title_h + bar_h] = _lut(cmap)[ramp][None]
     im = Image.fromarray(strip)
     draw = ImageDraw.Draw(im)
-    try:
-        font = ImageFont.load_default(size=11 * scale)
-    except TypeError:  # Pillow < 10.1: a fixed bitmap font
-        font = ImageFont.load_default()
+    font = _font(scale)
     lo, hi = 1 / vmax, 1 / vmin
     for d in _ticks(vmin, vmax):
         x = round((1 / d - lo) / (hi - lo) * (width - 1)) if hi > lo else width // 2
@@ -183,15 +199,53 @@ def depth_picture(
     brightest and darkest colours (default: this depth's, :func:`depth_limits`; fix them to compare the
     frames of a video). Returns ``uint8`` RGB.
     """
+    return depth_panels(image, [depth], unit, min_width=min_width, cmap=cmap, limits=limits)
+
+
+def depth_panels(
+    image: np.ndarray,
+    depths: list[np.ndarray],
+    unit: str = "network units",
+    labels: list[str] | None = None,
+    min_width: int = 1024,
+    cmap: str = "magma",
+    limits: tuple[float, float] | None = None,
+) -> np.ndarray:
+    """The input above one or more depth maps of it (e.g. a prediction and the ground truth), all coloured
+    with one colour scale, enlarged by a whole factor to at least ``min_width`` pixels (the depth by
+    repeating pixels, the input bicubically), and under them the colour scale labelled in ``unit``.
+
+    ``image`` ``uint8 [H',W',3]`` (resized to the depth's size) and every ``depths[i]`` ``[H,W]`` are of one
+    camera. ``labels``: one title for the input and one for each depth map, each drawn in a strip above its
+    panel (``None``: no titles). ``limits``: the depths of the brightest and darkest colours (default: the first depth map's,
+    :func:`depth_limits`). Returns ``uint8`` RGB.
+    """
     from PIL import Image
 
-    h, w = depth.shape
+    if not depths:
+        raise ValueError("depth_panels needs at least one depth map")
+    h, w = depths[0].shape
+    if any(d.shape != (h, w) for d in depths):
+        raise ValueError("the depth maps must have one size")
+    if labels is not None and len(labels) != 1 + len(depths):
+        raise ValueError(
+            f"labels: one for the image and one per depth map, {1 + len(depths)}, got {len(labels)}"
+        )
     k = max(1, math.ceil(min_width / w))
-    limits = limits or depth_limits(depth) or (1.0, 2.0)
-    colour = colorize_depth(depth, *limits, cmap=cmap)
-    big_depth = np.repeat(np.repeat(colour, k, 0), k, 1)
+    scale = max(1, round(w * k / 1024))
+    limits = limits or depth_limits(depths[0]) or (1.0, 2.0)
     big_image = np.asarray(
         Image.fromarray(np.ascontiguousarray(image)).resize((w * k, h * k), Image.Resampling.BICUBIC)
     )
-    bar = _colour_bar(w * k, limits[0], limits[1], unit, cmap, max(1, round(w * k / 1024)))
-    return side_by_side([big_image, big_depth, bar], separator=2, colour=0)
+    panels = [big_image]
+    for depth in depths:
+        colour = colorize_depth(depth, *limits, cmap=cmap)
+        panels.append(np.repeat(np.repeat(colour, k, 0), k, 1))
+    if labels is not None:
+        panels = [
+            part
+            for label, panel in zip(labels, panels, strict=True)
+            for part in (_caption(w * k, label, scale), panel)
+        ]
+    bar = _colour_bar(w * k, limits[0], limits[1], unit, cmap, scale)
+    return side_by_side([*panels, bar], separator=2, colour=0)

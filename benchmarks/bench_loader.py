@@ -28,7 +28,7 @@ from PIL import Image
 from torch.utils.data import DataLoader
 
 from cylsfm import CylindricalCamera
-from cylsfm.data import AugmentConfig, SequenceDataset, SequenceWriter
+from cylsfm.data import AugmentConfig, SampleOptions, SequenceDataset, SequenceWriter, build_index
 
 
 def _smooth_noise(rng: np.random.Generator, width: int, height: int, cells: tuple[int, int]) -> np.ndarray:
@@ -123,16 +123,17 @@ def main() -> None:
         print(f"median of {args.passes} passes after a warm-up pass\n")
         print("| output size | frames | workers | samples/s | ms/sample |")
         print("|---|---|---|---|---|")
+        index = build_index(root)  # every configuration loads the same snippets
         for spec in args.sizes:
             w, h = (int(v) for v in spec.split("x"))
             for mode in args.modes:
-                ds = SequenceDataset(
-                    root,
+                options = SampleOptions(
                     size=None if (w, h) == (width, height) else (w, h),
                     augment=AugmentConfig(),
-                    load_ground_truth=mode == "decode",
+                    ground_truth=mode == "decode",
                     cache=mode == "cache-no-gt",
                 )
+                ds = SequenceDataset(index, options)
                 for workers in args.workers:
                     rate = measure(ds, workers, args.batch, args.passes)
                     print(f"| {w}x{h} | {mode} | {workers} | {rate:.0f} | {1000 / rate:.2f} |", flush=True)

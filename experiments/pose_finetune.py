@@ -21,7 +21,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from cylsfm.data.dataset import SequenceDataset, camera_of
+from cylsfm.data.dataset import SampleOptions, SequenceDataset, build_index, camera_of
 from cylsfm.geometry import mat_to_pose_vec, pose_vec_to_mat
 from cylsfm.losses import LossConfig, view_synthesis_loss
 from cylsfm.model import load_models
@@ -61,8 +61,9 @@ def main() -> None:
     variants = args.variant.split(",")
     aux_weight = sum(float(v[3:]) for v in variants if v.startswith("aux"))
     print(cfg, flush=True)
-    train = SequenceDataset(args.data, seq_length=3, split="train", size=(256, 64))
-    test = SequenceDataset(args.data, seq_length=3, split="test", size=(256, 64))
+    options = SampleOptions(size=(256, 64))
+    train = SequenceDataset(build_index(args.data, "train", seq_length=3), options)
+    test = SequenceDataset(build_index(args.data, "test", seq_length=3), options)
 
     def yaws(ds: SequenceDataset) -> np.ndarray:  # ground-truth yaw to the first source, radians
         return np.array([float(mat_to_pose_vec(ds[i]["pose_gt"])[1, 4]) for i in range(len(ds))])

@@ -23,7 +23,7 @@ import argparse
 import numpy as np
 import torch
 
-from cylsfm.data.dataset import SequenceDataset
+from cylsfm.data.dataset import SampleOptions, SequenceDataset, build_index
 from cylsfm.model import load_models
 
 
@@ -37,7 +37,8 @@ def main() -> None:
     models = load_models(args.checkpoint)
     net = models.pose_net.eval()
     cfg = models.config
-    test = SequenceDataset(args.data, seq_length=3, split="test", size=(cfg.data.width, cfg.data.height))
+    index = build_index(args.data, "test", seq_length=3)
+    test = SequenceDataset(index, SampleOptions(size=(cfg.data.width, cfg.data.height)))
     pick = np.linspace(0, len(test) - 1, min(args.n, len(test))).round().astype(int)
     b = [test[int(i)] for i in pick]
     tgt = torch.stack([x["target"] for x in b])  # [B,3,H,W]

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from cylsfm import CylindricalCamera
-from cylsfm.data import DatasetError, SequenceDataset, SequenceWriter, make_splits, read_split
+from cylsfm.data import DatasetError, SequenceDataset, SequenceWriter, build_index, make_splits, read_split
 from cylsfm.errors import InputError
 
 W, H = 32, 8
@@ -75,7 +75,7 @@ def test_frame_mode_follows_the_papers_rule(tmp_path, seq_length, stride):
     n_cand = 80 + 50 - 4 * reach
     assert len(parts["test"]) == round(0.05 * n_cand) and len(parts["val"]) == round(0.05 * n_cand)
     # the snippets a dataset forms from the split obey the rule too
-    ds = SequenceDataset(tmp_path, seq_length=seq_length, stride=stride, split="train")
+    ds = SequenceDataset(build_index(tmp_path, seq_length=seq_length, stride=stride, split="train"))
     used = {(seq, int(f)) for i in range(len(ds)) for seq, frames in [ds.snippet(i)] for f in frames}
     assert used == train and not used & (val | test)
     assert len(ds) == len(parts["train"])
@@ -111,18 +111,18 @@ def test_dataset_with_split_files(tmp_path):
     write_seq(tmp_path / "seq_a", 6)
     split = tmp_path / "mine.txt"
     split.write_text("seq_a 000003\nseq_a 000001\n")
-    ds = SequenceDataset(tmp_path, split=split)
+    ds = SequenceDataset(build_index(tmp_path, split=split))
     assert ds.targets() == [("seq_a", "000003"), ("seq_a", "000001")]
     assert ds[0]["frame"] == "000003"
     # a target without a full snippet is skipped with a warning
     split.write_text("seq_a 000000\nseq_a 000002\n")
     with pytest.warns(UserWarning, match="1 of 2 targets"):
-        ds = SequenceDataset(tmp_path, split=split)
+        ds = SequenceDataset(build_index(tmp_path, split=split))
     assert ds.targets() == [("seq_a", "000002")]
     with pytest.raises(DatasetError, match="cylsfm split"):
-        SequenceDataset(tmp_path, split="train")
+        SequenceDataset(build_index(tmp_path, split="train"))
     make_splits(tmp_path, name="x", fractions=(1.0, 0.0, 0.0))
-    assert len(SequenceDataset(tmp_path, split="train", split_name="x")) == 4
+    assert len(SequenceDataset(build_index(tmp_path, split="train", split_name="x"))) == 4
 
 
 def test_bad_arguments(tmp_path):

@@ -2,13 +2,14 @@
 
 The files of the format (:mod:`.io`) and its directory layout (:mod:`.format`), split files
 (:mod:`.splits`), samples (:mod:`.sample`) and their augmentation (:mod:`.augment`), static-frame removal
-(:mod:`.static`), the datasets (:mod:`.dataset`, :mod:`.strips`), resampling into a cylinder
+(:mod:`.static`), a dataset's snippets (:mod:`.index`), the datasets (:mod:`.dataset`, :mod:`.strips`), resampling into a cylinder
 (:mod:`.convert`) and synthetic data (:mod:`.synth`).
 """
 
 from .augment import AugmentConfig
-from .dataset import SequenceDataset
+from .dataset import SampleOptions, SequenceDataset
 from .format import DatasetWarning, SequenceInfo, SequenceWriter, scan_dataset
+from .index import SnippetIndex, build_index
 from .io import (
     DatasetError,
     atomic_write_bytes,
@@ -30,12 +31,15 @@ __all__ = [
     "AugmentConfig",
     "DatasetError",
     "DatasetWarning",
+    "SampleOptions",
     "SequenceDataset",
     "SequenceInfo",
     "SequenceWriter",
+    "SnippetIndex",
     "StaticFilter",
     "StripDataset",
     "atomic_write_bytes",
+    "build_index",
     "build_sample",
     "camera_class",
     "camera_of",

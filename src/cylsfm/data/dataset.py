@@ -1,14 +1,19 @@
 """Training and evaluation samples (snippets of consecutive frames) from datasets in the cylsfm format.
 
-:class:`SequenceDataset` forms the snippets of a dataset (after bad-frame and static-frame removal, and
-restricted to a split) and loads them as samples (:mod:`cylsfm.data.sample`), augmented
-(:mod:`cylsfm.data.augment`) for training. The names of those modules are re-exported here.
+:class:`SequenceDataset` loads the snippets of a :class:`~cylsfm.data.index.SnippetIndex` (built once by
+:func:`~cylsfm.data.index.build_index`: the dataset's scan, bad-frame and static-frame removal, the split)
+as samples (:mod:`cylsfm.data.sample`), augmented (:mod:`cylsfm.data.augment`) for training, as its
+:class:`SampleOptions` say. The names of those modules are re-exported here::
+
+    index = build_index(root, split="train", seq_length=3, static=StaticFilter("auto"))
+    dataset = SequenceDataset(index, SampleOptions(size=(512, 128), augment=AugmentConfig()))
 """
 
 from __future__ import annotations
 
 import os
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,24 +26,19 @@ from ..errors import InputError, reading
 from ..geometry import Camera, relative_pose
 from .augment import AugmentConfig
 from .cache import FrameCache, available_memory_bytes
-from .format import (
-    DatasetError,
-    DatasetWarning,
-    SequenceInfo,
-    load_depth,
-    load_image,
-    load_mask,
-    scan_dataset,
-)
+from .format import DatasetError, DatasetWarning, load_depth, load_image, load_mask
+from .index import SnippetIndex, build_index
 from .sample import NUM_SCALES, build_sample, camera_class, camera_of, check_size, intrinsics_pyramid
-from .splits import SPLIT_PARTS, check_snippet_args, read_split, snippet_offsets, split_path
-from .static import StaticFilter, kept_runs
+from .static import StaticFilter
 
 __all__ = [
     "NUM_SCALES",
     "AugmentConfig",
+    "SampleOptions",
     "SequenceDataset",
+    "SnippetIndex",
     "StaticFilter",
+    "build_index",
     "build_sample",
     "camera_class",
     "camera_of",
@@ -46,8 +46,41 @@ __all__ = [
 ]
 
 
+@dataclass(frozen=True)
+class SampleOptions:
+    """How a :class:`SequenceDataset` loads its snippets.
+
+    Attributes:
+        size: ``(W, H)`` to resample images to (area interpolation; depth by nearest neighbour; the camera
+            via ``Camera.resized``), or ``None`` for the stored size (then all sequences must share it).
+        augment: :class:`AugmentConfig`, or ``None`` for no augmentation.
+        ground_truth: include ``"depth"`` and ``"pose_gt"`` when available.
+        cache: decode every frame of the samples once, up front, and keep it in memory as ``uint8``
+            (:class:`~cylsfm.data.cache.FrameCache`); samples are then the same as without it, faster.
+            ``"auto"``: only when the frames take at most a quarter of the memory still available.
+        mask: an image of the pixels to use in every sequence (white), e.g. without a helmet seen in every
+            frame, of the panoramas' aspect ratio (resampled to their size): it multiplies each sequence's
+            own ``mask.png`` and, being part of each sample, follows the augmentation (a mirrored sample has
+            a mirrored mask).
+
+    Raises:
+        InputError: for an invalid ``size`` or ``cache``; a ``ValueError`` too.
+    """
+
+    size: tuple[int, int] | None = None
+    augment: AugmentConfig | None = None
+    ground_truth: bool = True
+    cache: bool | str = False
+    mask: str | os.PathLike[str] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "size", check_size(self.size))
+        if self.cache not in (True, False, "auto"):
+            raise InputError(f"cache must be True, False or 'auto', got {self.cache!r}")
+
+
 class SequenceDataset(Dataset):
-    """Snippets of consecutive frames from a dataset in the cylsfm format (``docs/data-format.md``).
+    """The snippets of ``index`` as samples, loaded as ``options`` say (default :class:`SampleOptions`).
 
     Every sample is a dictionary (only keys present in every sample of the dataset appear, so the default
     ``torch.utils.data.default_collate`` works):
@@ -62,96 +95,45 @@ class SequenceDataset(Dataset):
     - ``"pose_gt"``: ``float32 [S,4,4]`` ground-truth ``T_tgt_to_src = relative_pose(c2w_tgt, c2w_src)``
       (metres); present when every used sequence has ``poses.txt``;
     - ``"mask"``: ``float32 [1,H,W]`` in ``{0, 1}``, 1 = pixel to use; present when any used sequence has
-      ``mask.png`` (sequences without get all ones);
+      ``mask.png`` or ``options.mask`` is given (sequences without get all ones);
     - ``"sequence"``: sequence name; ``"frame"``: the target's frame name; ``"index"``: the sample's index.
 
-    Use :func:`camera_of` to get the (possibly augmented) camera of a sample or a batch.
-
-    Args:
-        root: dataset root (or a single sequence directory).
-        seq_length: frames per snippet (odd); the snippet of target ``t`` is
-            ``t - k*stride .. t + k*stride`` with ``k = (seq_length - 1) // 2``, counted over the frames
-            left after static-frame removal.
-        stride: frame step within a snippet.
-        split: ``None`` for every target with a full snippet; ``"train"``, ``"val"`` or ``"test"`` for
-            ``ROOT/splits/<split_name>/<split>.txt``; or the path of a split file. Listed targets without
-            a full snippet here (static frame, sequence border, bad frame) are skipped with one warning.
-        split_name: which split of ``ROOT/splits`` a named split refers to.
-        size: ``(W, H)`` to resample images to (area interpolation; depth by nearest neighbour; the camera
-            via ``Camera.resized``), or ``None`` for the stored size (then all sequences must share it).
-        augment: :class:`AugmentConfig`, or ``None`` for no augmentation.
-        static: :class:`StaticFilter`; default ``StaticFilter(method="none")``.
-        skip_bad: drop frames whose header is bad at build time (with a :class:`DatasetWarning`; no snippet
-            contains them) and replace a sample whose frame fails to decode at load time by the next
-            loadable one (warned about, deterministic) instead of raising :class:`DatasetError`.
-        load_ground_truth: include ``"depth"`` and ``"pose_gt"`` when available.
-        cache: decode every frame of the samples once, up front, and keep it in memory as ``uint8``
-            (:class:`~cylsfm.data.cache.FrameCache`); samples are then the same as without it, faster.
-            ``"auto"``: only when the frames take at most a quarter of the memory still available.
-        mask: an image of the pixels to use in every sequence (white), e.g. without a helmet seen in every
-            frame, of the panoramas' aspect ratio (resampled to their size): it multiplies each sequence's
-            own ``mask.png`` and, being part of each sample, follows the augmentation (a mirrored sample has
-            a mirrored mask).
+    Use :func:`camera_of` to get the (possibly augmented) camera of a sample or a batch. With an index
+    built with ``skip_bad``, a sample whose frame fails to decode is replaced by the next loadable one
+    (warned about, deterministic) instead of raising :class:`DatasetError`.
 
     Raises:
-        DatasetError: naming the file, for any invalid input (see :func:`scan_dataset`); at load time for a
-            corrupt image or depth map (unless ``skip_bad``).
-        InputError: for invalid arguments (even ``seq_length``);
-            a ``ValueError`` too.
+        DatasetError: sequences of different sizes without ``options.size``; a mask of another aspect
+            ratio than the panoramas; at load time, naming the file, a corrupt image or depth map (unless
+            the index skips bad frames).
     """
 
-    def __init__(
-        self,
-        root: str | os.PathLike[str],
-        seq_length: int = 3,
-        stride: int = 1,
-        split: str | os.PathLike[str] | None = None,
-        split_name: str = "default",
-        size: tuple[int, int] | None = None,
-        augment: AugmentConfig | None = None,
-        static: StaticFilter | None = None,
-        skip_bad: bool = False,
-        load_ground_truth: bool = True,
-        cache: bool | str = False,
-        mask: str | os.PathLike[str] | None = None,
-    ) -> None:
-        check_snippet_args(seq_length, stride)
-        self.root = Path(root)
-        self.seq_length = seq_length
-        self.stride = stride
-        self.size = check_size(size)
-        self.augment = augment
-        self.static = static if static is not None else StaticFilter(method="none")
-        self.skip_bad = skip_bad
-        self.load_ground_truth = load_ground_truth
-        self.sequences: list[SequenceInfo] = scan_dataset(self.root, skip_bad=skip_bad)
+    def __init__(self, index: SnippetIndex, options: SampleOptions | None = None) -> None:
+        options = options if options is not None else SampleOptions()
+        self.index = index
+        self.options = options
+        self.root = index.root
+        self.sequences = index.sequences
+        self.size = options.size
+        self.augment = options.augment
+        self.skip_bad = index.skip_bad
+        self.center = index.center
         self.cameras: list[Camera] = self._resized_cameras()
-        table, seq_arr = self._snippet_table()
-        if split is not None:
-            table, seq_arr = self._select_split(table, seq_arr, self._split_file(split, split_name))
-        if len(table) == 0:
-            warnings.warn(
-                f"{self.root}: no samples (no target has a full snippet of seq_length={seq_length}, "
-                f"stride={stride}{'' if split is None else f' in split {split}'})",
-                DatasetWarning,
-                stacklevel=2,
-            )
-        self._snippets = table
-        self._seq_idx = seq_arr
-        self.center = seq_length // 2
-        used = sorted(set(seq_arr.tolist()))
-        used_seqs = [self.sequences[s] for s in used]
-        self.has_depth = load_ground_truth and any(s.depths is not None for s in used_seqs)
-        self.has_pose = load_ground_truth and bool(used_seqs) and all(s.poses is not None for s in used_seqs)
-        self.extra_mask = Path(mask) if mask is not None else None
-        self._check_extra_mask(used)
+        self._snippets, self._seq_idx = index.frames, index.owners
+        used_seqs = [self.sequences[s] for s in index.used]
+        self.has_depth = options.ground_truth and any(s.depths is not None for s in used_seqs)
+        self.has_pose = (
+            options.ground_truth and bool(used_seqs) and all(s.poses is not None for s in used_seqs)
+        )
+        self.extra_mask = Path(options.mask) if options.mask is not None else None
+        self._check_extra_mask(index.used)
         self.has_mask = self.extra_mask is not None or any(s.mask is not None for s in used_seqs)
         # found at load time (per process): frames that fail to decode ((seq, -1): the mask), and
         # targets whose depth map is bad
         self._bad_frames: set[tuple[int, int]] = set()
         self._bad_targets: set[tuple[int, int]] = set()
         self._mask_cache: dict[int, np.ndarray] = {}
-        self.frame_cache = self._frame_cache(cache) if len(table) else None
+        self.frame_cache = self._frame_cache(options.cache) if len(index) else None
 
     # ------------------------------------------------------------------ building
     def _resized_cameras(self) -> list[Camera]:
@@ -167,70 +149,9 @@ class SequenceDataset(Dataset):
             for s in self.sequences
         ]
 
-    def _snippet_table(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every full snippet over the frames left after bad-frame and static-frame removal.
-
-        Returns ``(frames int64 [N, seq_length], sequence int64 [N])``: the frame indices of each snippet
-        in time order and the index of its sequence.
-        """
-        offsets = snippet_offsets(self.seq_length, self.stride)  # positions in the list of kept frames
-        reach = int(offsets[-1])
-        tables: list[np.ndarray] = [np.zeros((0, self.seq_length), dtype=np.int64)]
-        owners: list[np.ndarray] = [np.zeros(0, dtype=np.int64)]
-        for s, seq in enumerate(self.sequences):
-            # the warnings of skipped frames point at the caller of SequenceDataset
-            for kept in kept_runs(seq, self.static, self.skip_bad, stacklevel=3):
-                if len(kept) <= 2 * reach:
-                    continue
-                pos = np.arange(reach, len(kept) - reach)[:, None] + offsets[None, :]
-                tables.append(np.asarray(kept, dtype=np.int64)[pos])
-                owners.append(np.full(len(pos), s, dtype=np.int64))
-        return np.concatenate(tables), np.concatenate(owners)
-
-    def _split_file(self, split: str | os.PathLike[str], split_name: str) -> Path:
-        """The split file of a named part (``"train"``, ``"val"``, ``"test"``), which must exist, or ``split``."""
-        if isinstance(split, str) and split in SPLIT_PARTS:
-            path = split_path(self.root, split, split_name)
-            if not path.exists():
-                raise DatasetError(
-                    f"{path}: split file not found (write the splits with `cylsfm split {self.root}`, "
-                    "or use --split all)"
-                )
-            return path
-        return Path(split)
-
-    def _select_split(
-        self, table: np.ndarray, seq_arr: np.ndarray, path: Path
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The rows of the snippet table whose targets the split file lists, in the file's order."""
-        entries = read_split(path, self.root, self.sequences)
-        seq_of_name = {seq.name: i for i, seq in enumerate(self.sequences)}
-        frame_of = [{stem: i for i, stem in enumerate(seq.stems)} for seq in self.sequences]
-        centres = table[:, self.seq_length // 2]
-        where = {(s, f): n for n, (s, f) in enumerate(zip(seq_arr.tolist(), centres.tolist(), strict=True))}
-        chosen = []
-        for seq_name, stem in entries:
-            s = seq_of_name[seq_name]
-            n = where.get((s, frame_of[s][stem]))
-            if n is not None:
-                chosen.append(n)
-        missing = len(entries) - len(chosen)
-        if missing:
-            warnings.warn(
-                f"{path}: {missing} of {len(entries)} targets have no full snippet "
-                f"(seq_length={self.seq_length}, stride={self.stride}, static={self.static.method}) "
-                "and are skipped",
-                DatasetWarning,
-                stacklevel=3,
-            )
-        idx = np.asarray(chosen, dtype=np.int64)
-        return (table[idx] if len(idx) else table[:0]), seq_arr[idx]
-
     def _frame_cache(self, cache: bool | str) -> FrameCache | None:
         """Every frame of the snippets decoded once at the dataset's size, if ``cache`` asks for it
         (``"auto"``: when they take at most a quarter of the free memory)."""
-        if cache not in (True, False, "auto"):
-            raise InputError(f"cache must be True, False or 'auto', got {cache!r}")
         if not cache:
             return None
         pairs = zip(self._seq_idx.tolist(), self._snippets.tolist(), strict=True)
@@ -253,15 +174,11 @@ class SequenceDataset(Dataset):
 
     def targets(self) -> list[tuple[str, str]]:
         """``(sequence, frame)`` of every sample's target, in index order."""
-        return [
-            (self.sequences[s].name, self.sequences[s].images[row[self.center]].stem)
-            for s, row in zip(self._seq_idx.tolist(), self._snippets, strict=True)
-        ]
+        return self.index.targets()
 
     def snippet(self, index: int) -> tuple[str, list[str]]:
         """``(sequence, frame names of the snippet in time order)`` of sample ``index``."""
-        seq = self.sequences[int(self._seq_idx[index])]
-        return seq.name, [seq.images[f].stem for f in self._snippets[index]]
+        return self.index.snippet(index)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         n = len(self)

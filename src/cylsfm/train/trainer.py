@@ -31,7 +31,8 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
-from ..data.dataset import AugmentConfig, SequenceDataset, StaticFilter, camera_of
+from ..data.dataset import AugmentConfig, SampleOptions, SequenceDataset, StaticFilter, camera_of
+from ..data.index import build_index
 from ..data.strips import StripDataset, is_strip_dataset
 from ..errors import CylsfmError
 from ..model.build import build_models, upgrade_pose_state
@@ -154,19 +155,16 @@ class Trainer:
         if is_strip_dataset(root):
             split = d.split or "train"
             return StripDataset(root, split, d.seq_length, "cylindrical", (d.width, d.height), augment)
-        return SequenceDataset(
-            d.root,
-            seq_length=d.seq_length,
-            stride=d.stride,
-            split=d.split,
-            split_name=d.split_name,
+        static = StaticFilter(d.static_filter, d.min_translation, d.min_image_diff)
+        index = build_index(d.root, d.split, d.split_name, d.seq_length, d.stride, static)
+        options = SampleOptions(
             size=(d.width, d.height),
             augment=augment,
-            static=StaticFilter(d.static_filter, d.min_translation, d.min_image_diff),
-            load_ground_truth=False,  # self-supervised: depth and poses are never read
+            ground_truth=False,  # self-supervised: depth and poses are never read
             cache=d.cache,
             mask=d.mask,  # in every sample, so that it follows the mirror
         )
+        return SequenceDataset(index, options)
 
     def _start_afresh(self, overwrite: bool) -> None:
         """Refuse to train over an existing run (its checkpoints and logs) unless asked to start it over;

@@ -12,7 +12,7 @@ import torch
 import cylsfm.runtime as runtime
 from cylsfm.errors import CylsfmError
 from cylsfm.geometry import CylindricalCamera
-from cylsfm.model import Predictor
+from cylsfm.model import Predictor, load_models
 from cylsfm.runtime import autocast_dtype
 from helpers import untrained_checkpoint
 
@@ -41,11 +41,67 @@ def _frames() -> tuple[torch.Tensor, torch.Tensor]:
     return ride[1:3], torch.stack((ride[0:2], ride[2:4]), 1)
 
 
+def _fit_output_layers(models) -> None:
+    """Fit the last layers of untrained networks (a few hundred cheap steps on features computed once) so
+    that what they predict depends on the frames: untrained, the depth barely changes with the image and the
+    pose network's rotations are ~1e-4 rad, so a broken reduced-precision path (a blanked image, a negated
+    pose) would stay inside the tolerances below. Fitted, the disparity follows the frames' brightness and
+    the pair network answers each test pair with a motion of a few degrees."""
+    from cylsfm.nn import set_wrap
+
+    tgt, src = _frames()
+    seen = {}
+    # the pose head on the encoder's features of the four test pairs, to given motions
+    net = models.pose_net.net
+    head = net.pair.head
+    first, second = tgt[:, None].expand_as(src).flatten(0, 1), src.flatten(0, 1)
+    hook = head.register_forward_pre_hook(lambda module, args: seen.__setitem__("pose", args[0].detach()))
+    with torch.no_grad():
+        net.pair_vectors(first, second)
+    hook.remove()
+    motions = torch.tensor(
+        [[0.4, -0.1, 0.8, 0.05, 0.02, -0.04], [-0.3, 0.05, 0.6, -0.03, 0.06, 0.02]]
+    ).repeat(2, 1)
+    n = first.shape[0]
+    optimiser = torch.optim.Adam(head.parameters(), 0.1)
+    for _ in range(200):
+        pairs = head(seen["pose"])
+        loss = ((pairs[:n] - pairs[n:]).view(n, 6) - motions).abs().mean()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    # the finest decoder level and its disparity head, to a disparity that grows with the brightness
+    disp = models.disp_net
+    set_wrap(disp, False)  # layer by layer, so that the hook sees the finest level's input
+    iconv, dhead = disp.iconvs[-1], disp.disp_heads[-1]
+    hook = iconv.register_forward_pre_hook(lambda module, args: seen.__setitem__("depth", args[0].detach()))
+    with torch.no_grad():
+        disp(tgt)
+    hook.remove()
+    wanted = 1.0 + 2.0 * tgt.mean(1, keepdim=True)
+    optimiser = torch.optim.Adam([*iconv.parameters(), *dhead.parameters()], 1e-2)
+    for _ in range(300):
+        loss = (dhead(iconv(seen["depth"])) - wanted).abs().mean()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    set_wrap(disp, True)
+    for module in (models.disp_net, models.pose_net):
+        module.requires_grad_(False)
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """The default recipe's networks with their output layers fitted to the test frames (see above)."""
+    models = load_models(untrained_checkpoint(tmp_path_factory.mktemp("fitted"), W, H))
+    _fit_output_layers(models)
+    return models
+
+
 @pytest.fixture
-def predictors(tmp_path: Path, monkeypatch) -> tuple[Predictor, Predictor]:
+def predictors(fitted, monkeypatch) -> tuple[Predictor, Predictor]:
     monkeypatch.setattr(runtime, "native_bf16", lambda: True)
-    ckpt = untrained_checkpoint(tmp_path, W, H)
-    return Predictor.from_checkpoint(ckpt, "cpu", amp=False), Predictor.from_checkpoint(ckpt, "cpu")
+    return Predictor(fitted, "cpu", amp=False), Predictor(fitted, "cpu")
 
 
 def test_bf16_networks_are_copies_and_the_outputs_fp32(predictors) -> None:
@@ -74,6 +130,20 @@ def test_bf16_depth_and_poses_within_tolerance_of_fp32(predictors) -> None:
     assert float((t16 - t32).norm(dim=-1).max()) < 0.05 * float(t32.norm(dim=-1).max())
     rot = torch.linalg.matrix_norm(p16[..., :3, :3] - p32[..., :3, :3])  # ~ angle * sqrt(2)
     assert float(rot.max()) < torch.deg2rad(torch.tensor(0.05)) * 1.5
+
+
+def test_the_tolerances_would_see_a_broken_path(fitted, predictors) -> None:
+    """The fitted networks' outputs depend on what they read, by far more than the tolerances above: a
+    path that read blank frames, or that turned the pose network's motion round, would fail them."""
+    fp32, _ = predictors
+    tgt, src = _frames()
+    cam = CylindricalCamera.full(W, H)
+    blank = fp32.depth(torch.zeros_like(tgt), cam)
+    assert float((blank / fp32.depth(tgt, cam) - 1).abs().max()) > 5 * 0.04
+    with torch.no_grad():
+        vectors, _ = fitted.pose_net.net(tgt, src)  # the network's part of the pose, no compass
+    # negated, each rotation would move by twice its angle: ~ 2 sqrt(2) |omega| in the norm above
+    assert float(vectors[..., 3:].norm(dim=-1).min()) > 5 * float(torch.deg2rad(torch.tensor(0.05)))
 
 
 def test_passes_with_the_targets_depth_given_equal_the_depth_predicted(tmp_path: Path) -> None:

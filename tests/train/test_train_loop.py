@@ -3,6 +3,7 @@ import math
 import os
 import subprocess
 import sys
+import warnings
 
 import pytest
 import torch
@@ -68,7 +69,9 @@ def test_training_writes_config_logs_and_checkpoints(tiny_data, tmp_path):
     assert models.step == 3
     assert load_config(run / "config.yaml") == models.config
     assert (models.config.data.width, models.config.data.height, models.config.max_steps) == (128, 32, 3)
-    assert models.config.loss == cfg.loss and models.config.data.vfov_h is not None
+    assert models.config.loss == cfg.loss
+    # the panoramas' measured extent is run metadata, in the checkpoint beside the configuration
+    assert models.dataset == {"vfov_h": 1.0} and "vfov_h" not in (run / "config.yaml").read_text()
     # the weights were trained: every parameter moved away from its (seeded) initialisation
     fresh = Trainer(_cfg(tiny_data, max_steps=3), tmp_path / "fresh")
     fresh.close()
@@ -93,7 +96,10 @@ def test_resume_continues_exactly(tiny_data, tmp_path):
     train(_cfg(tiny_data, max_steps=6, **fade), tmp_path / "straight", progress=False)
     with pytest.warns(UserWarning, match="before the slot-prior scaffold was faded out"):
         train(_cfg(tiny_data, max_steps=3, **fade), tmp_path / "split", progress=False)
-    train(_cfg(tiny_data, max_steps=6, **fade), tmp_path / "split", resume=True, progress=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        train(_cfg(tiny_data, max_steps=6, **fade), tmp_path / "split", resume=True, progress=False)
+    assert not [w for w in caught if "keeps its configuration" in str(w.message)]  # nothing to set aside
     weights = [json.loads(line)["prior_weight"] for line in (tmp_path / "split/metrics.jsonl").open()]
     assert weights == pytest.approx([1, 1, 1, 2 / 3, 1 / 3, 0])
     a, b = _weights(tmp_path / "straight"), _weights(tmp_path / "split")
@@ -105,8 +111,9 @@ def test_resume_continues_exactly(tiny_data, tmp_path):
 def test_a_training_checkpoint_of_the_one_class_pose_network_resumes_exactly(tiny_data, tmp_path):
     """A training checkpoint in the layout of the pose network before its parts (keys ``encoder.N.0.*``,
     ``pose_pred.*``, the scaffold's ``slot_prior`` inside the network) resumes to the weights of a run in one
-    go: the keys map, the prior moves to the scaffold, and the optimiser's moments stay with their
-    parameters (the parameters keep their order)."""
+    go: the keys map, the prior moves to the scaffold, the optimiser's moments stay with their parameters
+    (the parameters keep their order), and the panoramas' extent recorded in the configuration becomes
+    run metadata."""
     import re
 
     fade = {"model.prior_fade_start": 2, "model.prior_fade_end": 5}
@@ -120,11 +127,14 @@ def test_a_training_checkpoint_of_the_one_class_pose_network_resumes_exactly(tin
         key = re.sub(r"^net\.pair\.encoder\.convs\.(\d+)\.", r"encoder.\1.0.", key)
         old[key.replace("net.pair.head.conv.", "pose_pred.")] = value
     old["slot_prior"] = state.pop("scaffold")["slot_prior"]
+    state["config"]["data"]["vfov_h"] = state.pop("dataset")["vfov_h"]  # recorded there then
     assert "pose_pred.weight" in old and "encoder.6.0.bias" in old
     state["pose_net"] = old
     del state["path"], state["format"]
     save_checkpoint(ckpt, state)
     train(_cfg(tiny_data, max_steps=5, **fade), tmp_path / "old", resume=True, progress=False)
+    resumed = load_checkpoint(tmp_path / "old")
+    assert resumed["dataset"] == {"vfov_h": 1.0} and "vfov_h" not in resumed["config"]["data"]
     a, b = _weights(tmp_path / "straight"), _weights(tmp_path / "old")
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
@@ -248,20 +258,65 @@ def test_equivariant_head_is_trained_and_restored(tiny_data, tmp_path):
     assert pose[..., [0, 2, 3, 5]].abs().max() > 1e-5  # not trivially zero
 
 
+EACH_RANK_RECORDS = """
+import json, os, sys
+import torch
+from cylsfm.train import sampler, trainer
+
+rank, record = os.environ["RANK"], os.environ["RANK_RECORD"]
+read = []
+_getitem = sampler.SeededDataset.__getitem__
+def getitem(self, key):
+    read.append(int(key[0]))
+    return _getitem(self, key)
+sampler.SeededDataset.__getitem__ = getitem
+_fit = trainer.Trainer.fit
+def fit(self, *args, **kwargs):
+    summary = _fit(self, *args, **kwargs)
+    weights = dict(self.model.disp_net.state_dict())
+    weights.update({"pose." + k: v for k, v in self.model.pose_net.state_dict().items()})
+    torch.save(weights, f"{record}/weights_{rank}.pt")
+    with open(f"{record}/rank_{rank}.json", "w") as f:
+        json.dump({"read": read, "steps": summary["steps"], "stopped": summary["stopped"],
+                   "seconds": summary["seconds"]}, f)
+    return summary
+trainer.Trainer.fit = fit
+from cylsfm.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
 def test_data_parallel_with_two_cpu_processes(tiny_data, tmp_path):
-    """torchrun with 2 gloo processes: ranks share the data, rank 0 writes one checkpoint."""
+    """torchrun with 2 gloo processes: the ranks read different samples, yet their weights stay the same
+    after the steps (the gradients are averaged), and rank 0 writes one checkpoint of those weights."""
+    script, record = tmp_path / "recording.py", tmp_path / "record"
+    script.write_text(EACH_RANK_RECORDS)
+    record.mkdir()
     run = tmp_path / "ddp"
     cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29571",
-        "-m", "cylsfm.cli", "train", "--data", str(tiny_data), "--out", str(run), "--size", "128x32",
+        sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+        str(script), "train", "--data", str(tiny_data), "--out", str(run), "--size", "128x32",
         "--split", "all", "--max-steps", "2", "--workers", "0", "--no-progress", "--device", "cpu",
         "batch_size=2", "latest_every=1", "log_every=1",
     ]  # fmt: skip
-    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env = dict(os.environ, OMP_NUM_THREADS="1", RANK_RECORD=str(record), PYTHONPATH=os.pathsep.join(sys.path))
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 0, out.stderr[-3000:]
     assert load_checkpoint(run)["step"] == 2
     assert [r["step"] for r in _metrics(run)] == [1, 2]  # logged once, by rank 0
+    ranks = [json.loads((record / f"rank_{r}.json").read_text()) for r in (0, 1)]
+    assert [r["steps"] for r in ranks] == [2, 2]
+    reads = [r["read"][:4] for r in ranks]  # two steps of two samples each
+    assert all(len(r) == 4 for r in reads), reads
+    assert not set(reads[0]) & set(reads[1]), (
+        f"both processes read the samples {set(reads[0]) & set(reads[1])}"
+    )
+    weights = [torch.load(record / f"weights_{r}.pt") for r in (0, 1)]
+    differ = [k for k in weights[0] if not torch.equal(weights[0][k], weights[1][k])]
+    assert not differ, f"the processes' weights drifted apart (gradients not averaged): {differ[:3]}"
+    saved = _weights(run)
+    assert saved.keys() == weights[0].keys()
+    assert all(torch.equal(saved[k], weights[0][k]) for k in saved)  # the checkpoint: those weights
 
 
 def test_the_compass_is_trained_and_restored(tiny_data, tmp_path):

@@ -68,34 +68,54 @@ def test_sigterm_saves_a_checkpoint_and_the_run_resumes(tiny_data, tmp_path):
 
 
 SKEWED = """
-import os, sys, time
-if os.environ.get("RANK") == "1":  # this process's clock runs twice as fast: its budget ends first
+import json, os, sys, time
+rank = os.environ["RANK"]
+if rank == "1":  # this process's clock runs four times as fast: its budget ends first
     _monotonic = time.monotonic
-    time.monotonic = lambda: 2.0 * _monotonic()
+    time.monotonic = lambda: 4.0 * _monotonic()
+from cylsfm.train import trainer
+_fit = trainer.Trainer.fit
+def fit(self, *args, **kwargs):  # each process writes down where and why it stopped
+    summary = _fit(self, *args, **kwargs)
+    with open(os.path.join(os.environ["RANK_RECORD"], f"rank_{rank}.json"), "w") as f:
+        json.dump(summary, f)
+    return summary
+trainer.Trainer.fit = fit
 from cylsfm.cli import main
 sys.exit(main(sys.argv[1:]))
 """
 
+BUDGET_S = 12.0
+
 
 def test_data_parallel_processes_agree_when_the_budget_ends(tiny_data, tmp_path):
-    """torchrun, 2 gloo processes, one with a clock running twice as fast, and a budget of 6 s: both stop at
-    the same step (after about 3 s, the fast clock's budget), exit 0 within seconds, and rank 0 writes one checkpoint there. Without the
-    agreement the process whose budget ends first leaves while the other waits in a gradient all-reduce."""
-    script = tmp_path / "skewed.py"
+    """torchrun, 2 gloo processes, one with a clock running four times as fast, and a budget of 12 s: that
+    one's budget ends after about 3 s, and the other process stops with it, at the same step, long before
+    its own budget ends (each process writes down its step, its reason and its seconds by its own clock);
+    rank 0 writes one checkpoint there. Without the agreement the process whose budget ends first leaves
+    while the other waits in a gradient all-reduce; with an agreement that waited for every process's
+    budget, both would run the full 12 s."""
+    script, record = tmp_path / "skewed.py", tmp_path / "record"
     script.write_text(SKEWED)
+    record.mkdir()
     run = tmp_path / "ddp"
     cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29573",
+        sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
         str(script), "train", "--data", str(tiny_data), "--out", str(run), *ARGS,
-        "--max-steps", "100000", "--minutes", "0.1",
+        "--max-steps", "100000", "--minutes", str(BUDGET_S / 60),
     ]  # fmt: skip
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(sys.path))
+    env = dict(os.environ, OMP_NUM_THREADS="1", RANK_RECORD=str(record), PYTHONPATH=os.pathsep.join(sys.path))
     start = time.monotonic()
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=180, env=env)
     assert out.returncode == 0, out.stderr[-3000:]
     steps = _steps(run)
     assert 0 < steps[-1] < 100000 and load_checkpoint(run)["step"] == steps[-1]
     assert time.monotonic() - start < 150
+    ranks = [json.loads((record / f"rank_{r}.json").read_text()) for r in (0, 1)]
+    assert [r["steps"] for r in ranks] == [steps[-1]] * 2, ranks
+    assert [r["stopped"] for r in ranks] == ["minutes"] * 2, ranks
+    assert ranks[1]["seconds"] >= BUDGET_S, ranks  # the fast clock's budget ended...
+    assert ranks[0]["seconds"] < 0.75 * BUDGET_S, ranks  # ... and the other process stopped with it
 
 
 NAN_ON_RANK_1 = """
@@ -122,7 +142,7 @@ def test_a_non_finite_loss_in_one_process_stops_them_all(tiny_data, tmp_path):
     script.write_text(NAN_ON_RANK_1)
     run = tmp_path / "ddp"
     cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29575",
+        sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
         str(script), "train", "--data", str(tiny_data), "--out", str(run), "--max-steps", "100",
         *(a.replace("latest_every=1000", "latest_every=1") for a in ARGS),
     ]  # fmt: skip

@@ -4,6 +4,7 @@ valid result), never a traceback from deep inside, never a path outside the data
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,27 @@ json_values = st.recursive(
 )
 CAMERA_KEYS = ["model", "width", "height", "fx", "fy", "cx", "cy", "hfov_deg", "vfov_h"]
 camera_like = st.dictionaries(st.sampled_from(CAMERA_KEYS), scalars, max_size=len(CAMERA_KEYS))
+GOOD_CAMERA = {
+    "model": "cylindrical",
+    "width": 64,
+    "height": 16,
+    "fx": 10.2,
+    "cx": 32.0,
+    "fy": 8.0,
+    "cy": 7.5,
+}
+# a valid camera with one or two entries spoiled (or not): NaN, infinities, zero, negative, fractional sizes
+spoilt = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0, -1, 0.0, -0.0, 1e-300, 1e300, 2.5]),
+    st.integers(-3, 3),
+    st.none(),
+    st.text(max_size=3),
+)
+near_camera = st.tuples(
+    st.sampled_from(["cylindrical", "pinhole", "equirectangular"]),
+    st.dictionaries(st.sampled_from(CAMERA_KEYS[1:7]), spoilt, max_size=2),
+).map(lambda m: {**GOOD_CAMERA, "model": m[0], **m[1]})
 junk = st.one_of(st.binary(max_size=200), st.text(max_size=200).map(str.encode))
 
 
@@ -52,11 +74,46 @@ def _reads_or_names(read, path: Path, *args, **kwargs):
         return None
 
 
+def _valid_camera(camera) -> None:
+    """What a camera that was read must be: a known model, a size of positive integers, finite intrinsics
+    with positive focal lengths, and the same camera again when written and read back."""
+    from cylsfm.geometry import Camera
+
+    assert camera.model in ("cylindrical", "pinhole", "equirectangular"), camera
+    assert isinstance(camera.width, int) and isinstance(camera.height, int), camera
+    assert camera.width >= 1 and camera.height >= 1, camera
+    for name in ("fx", "fy", "cx", "cy"):
+        assert math.isfinite(float(getattr(camera, name))), f"{name} of {camera}"
+    assert float(camera.fx) > 0 and float(camera.fy) > 0, camera
+    assert Camera.from_dict(camera.to_dict()) == camera
+
+
+def test_every_spoilt_entry_of_a_camera_is_refused_or_harmless(tmp_path):
+    """Each model's valid camera with each entry in turn made NaN, infinite, zero, negative, fractional,
+    tiny or huge (JSON allows NaN and Infinity): an error naming the file, or a camera that is valid."""
+    import itertools
+
+    values = [math.nan, math.inf, -math.inf, 0, -1, -0.0, 2.5, 1e-300, 1e300]
+    for model, key, value in itertools.product(
+        ["cylindrical", "pinhole", "equirectangular"], CAMERA_KEYS[1:7], values
+    ):
+        path = _write(tmp_path / "camera.json", json.dumps({**GOOD_CAMERA, "model": model, key: value}))
+        camera = _reads_or_names(load_camera, path)
+        if camera is not None:
+            _valid_camera(camera)
+
+
 @FUZZ
-@given(content=st.one_of(junk, json_values.map(json.dumps), camera_like.map(json.dumps)))
+@given(
+    content=st.one_of(
+        junk, json_values.map(json.dumps), camera_like.map(json.dumps), near_camera.map(json.dumps)
+    )
+)
 def test_camera_json(tmp_path, content):
     path = _write(tmp_path / "camera.json", content)
-    _reads_or_names(load_camera, path)
+    camera = _reads_or_names(load_camera, path)
+    if camera is not None:
+        _valid_camera(camera)
 
 
 @FUZZ
@@ -127,7 +184,15 @@ def test_config_yaml(tmp_path, content):
 @given(content=st.one_of(junk, json_values.map(json.dumps)))
 def test_rig_json(tmp_path, content):
     path = _write(tmp_path / "rig.json", content)
-    _reads_or_names(load_rig, path)
+    rig = _reads_or_names(load_rig, path)
+    if rig is not None:
+        views, frames, _ = rig
+        assert views and len({len(f.images) for f in frames} | {len(views)}) == 1
+        for frame in frames:
+            assert math.isfinite(frame.time)
+            assert frame.pose is None or (frame.pose.shape == (4, 4) and np.isfinite(frame.pose).all())
+            for file in [*frame.images, *(frame.depths or [])]:
+                assert Path(file).resolve().is_relative_to(tmp_path.resolve()), file
 
 
 @FUZZ

@@ -239,7 +239,7 @@ class Camera:
             if isinstance(raw, bool) or not isinstance(raw, int | float):
                 raise CameraError(f"{source}: {key} must be a number, got {raw!r}")
             if key in ("width", "height"):
-                if int(raw) != raw:
+                if not math.isfinite(raw) or int(raw) != raw:
                     raise CameraError(f"{source}: {key} must be an integer, got {raw!r}")
                 raw = int(raw)
             values[key] = raw

@@ -11,15 +11,16 @@ by ``1000 + i`` for the ``i``-th key, times 0.05, on inputs drawn from ``torch.r
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import pytest
 import torch
 
-from cylsfm.model import load_models, save_checkpoint
+from cylsfm.model import build_models, load_models, save_checkpoint, untrained_checkpoint
 from cylsfm.model.checkpoint import CheckpointError
-from cylsfm.model.config import config_from_dict, preset
+from cylsfm.model.config import DataConfig, config_from_dict, config_to_dict, preset
 from cylsfm.nn import DispNet
 
 FIXTURE = json.loads((Path(__file__).parent / "data" / "pre_parts_pose_networks.json").read_text())
@@ -93,3 +94,53 @@ def test_old_configurations_load_and_removed_options_are_named(tmp_path: Path) -
         load_models(bad)
     assert config_from_dict({"preset": "default", "plain_photometric_steps": 0}).model.compass
     assert preset("default").model.antisymmetric
+
+
+def _untrained(path: Path, root: str = "", dataset: dict | None = None, vfov_h: float | None = None) -> Path:
+    """A checkpoint of fresh networks at 64x16; ``vfov_h`` recorded in its configuration as earlier versions
+    did, ``dataset`` as its run metadata (none: a checkpoint of an earlier version)."""
+    cfg = preset("default")
+    cfg.data.width, cfg.data.height, cfg.data.root = 64, 16, root
+    disp, pose = build_models(cfg)
+    config = config_to_dict(cfg)
+    if vfov_h is not None:
+        config["data"]["vfov_h"] = vfov_h
+    state = {"config": config, "step": 0, "disp_net": disp.state_dict(), "pose_net": pose.state_dict()}
+    save_checkpoint(path, state | ({"dataset": dataset} if dataset is not None else {}))
+    return path
+
+
+def test_the_training_panoramas_extent_is_run_metadata(tmp_path: Path) -> None:
+    """``vfov_h`` is measured on the training data and kept beside the configuration; a checkpoint of an
+    earlier version that recorded it in its configuration (``data.vfov_h``) loads with it as metadata."""
+    from cylsfm.model import Predictor
+    from cylsfm.model.plan import model_camera, model_vfov_h
+
+    fields = {f.name for f in dataclasses.fields(DataConfig)}
+    assert "vfov_h" not in fields  # not a setting
+    assert config_from_dict({"data": {"vfov_h": 0.5}}, saved=True) == config_from_dict({}, saved=True)
+    for name, kwargs in {"metadata": {"dataset": {"vfov_h": 0.6}}, "earlier": {"vfov_h": 0.6}}.items():
+        models = load_models(_untrained(tmp_path / f"{name}.pt", **kwargs))
+        assert models.dataset == {"vfov_h": 0.6} and models.vfov_h == 0.6
+        predictor = Predictor(models)
+        assert predictor.vfov_h == model_vfov_h(predictor) == model_vfov_h(models) == 0.6
+        assert float(model_camera(predictor).fy) == pytest.approx(16 / (2 * 0.6))
+
+
+def test_without_a_measurement_the_extent_falls_back_to_the_dataset_then_to_one(tmp_path: Path) -> None:
+    """Checkpoints that record no ``vfov_h``: the training dataset's camera while it is there, else 1; the
+    earlier call form ``model_vfov_h(predictor.config)`` gives these fallbacks."""
+    from cylsfm.data import SequenceWriter
+    from cylsfm.geometry import CylindricalCamera
+    from cylsfm.model import Predictor
+    from cylsfm.model.plan import DEFAULT_VFOV_H, model_vfov_h
+
+    writer = SequenceWriter(tmp_path / "data" / "seq", CylindricalCamera.full(64, 16, 0.8))
+    writer.add_frame(torch.zeros(16, 64, 3, dtype=torch.uint8).numpy())
+    writer.finish()
+    with_data = Predictor(load_models(_untrained(tmp_path / "a.pt", root=str(tmp_path / "data"))))
+    assert with_data.vfov_h == pytest.approx(0.8) and model_vfov_h(with_data.config) == pytest.approx(0.8)
+    gone = Predictor(load_models(_untrained(tmp_path / "b.pt", root=str(tmp_path / "gone"))))
+    assert gone.vfov_h == model_vfov_h(gone.config) == DEFAULT_VFOV_H == 1.0
+    untrained = Predictor(load_models(untrained_checkpoint(tmp_path / "c.pt", 64, 16)))
+    assert untrained.models.dataset == {"vfov_h": None} and untrained.vfov_h == 1.0

@@ -263,11 +263,11 @@ class SceneFunction:
         self.plans: dict[tuple[int, int], tuple[Any, torch.Tensor | None]] = {}
 
     def _plan(self, size: tuple[int, int]) -> tuple[Any, torch.Tensor | None]:
-        from ..model.plan import model_vfov_h, network_mask, plan_input
+        from ..model.plan import network_mask, plan_input
 
         if size not in self.plans:
             p = self.predictor
-            plan = plan_input(self.where, size, p, model_vfov_h(p.config), self.camera, self.label)
+            plan = plan_input(self.where, size, p, p.vfov_h, self.camera, self.label)
             seen = None if self.mask is None else network_mask(self.mask, size, plan, plan.network_input.size)
             self.plans[size] = (plan, seen)
         return self.plans[size]

@@ -4,16 +4,32 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 
+from ..data.format import find_sequence_dirs
+from ..errors import CylsfmError
+from ..geometry import CylindricalCamera, load_camera
 from ..nn import DispNet, PairPoseNet, PoseExpNet, PoseModel
-from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from .checkpoint import CheckpointError, dataset_metadata, load_checkpoint, save_checkpoint
 from .config import ConfigError, TrainConfig, config_from_dict, config_to_dict, preset
 
-__all__ = ["LoadedModels", "build_models", "load_models", "untrained_checkpoint", "upgrade_pose_state"]
+__all__ = [
+    "DEFAULT_VFOV_H",
+    "LoadedModels",
+    "build_models",
+    "load_models",
+    "training_vfov_h",
+    "untrained_checkpoint",
+    "upgrade_pose_state",
+]
+
+#: Vertical half-extent ``vfov_h`` of the training panoramas when the training data does not say otherwise.
+DEFAULT_VFOV_H = 1.0
 
 
 def build_models(cfg: TrainConfig) -> tuple[DispNet, PoseModel]:
@@ -38,7 +54,12 @@ def untrained_checkpoint(
     cfg.data.width, cfg.data.height, cfg.data.fov = width, height, fov
     torch.manual_seed(0)
     disp, pose = build_models(cfg)
-    state = {"config": config_to_dict(cfg), "step": 0, "disp_net": disp.state_dict()}
+    state = {
+        "config": config_to_dict(cfg),
+        "dataset": {"vfov_h": None},
+        "step": 0,
+        "disp_net": disp.state_dict(),
+    }
     save_checkpoint(path, {**state, "pose_net": pose.state_dict()})
     return Path(path)
 
@@ -87,15 +108,45 @@ def upgrade_pose_state(
     return out, prior
 
 
+def training_vfov_h(dataset: Mapping[str, Any], config: TrainConfig) -> float:
+    """The vertical extent ``vfov_h`` (rows span ``h`` in ``[-vfov_h, vfov_h]``) of the panoramas a model was
+    trained on.
+
+    Recorded in the checkpoint's run metadata ``dataset`` when training starts; for checkpoints that hold
+    none, read from the training dataset's ``camera.json`` (``height / (2 fy)``) when ``config.data.root``
+    is still there and holds a cylindrical camera; otherwise :data:`DEFAULT_VFOV_H` (1.0, +-45 degrees: the
+    cameras of ``cylsfm synth`` and of the paper's preparation).
+    """
+    recorded = dataset.get("vfov_h")
+    if recorded:
+        return float(recorded)
+    root = getattr(getattr(config, "data", None), "root", "") or ""
+    if root:
+        try:
+            cam = load_camera(find_sequence_dirs(root)[0] / "camera.json")
+            if isinstance(cam, CylindricalCamera) and cam.wraps:
+                return float(cam.height) / (2.0 * float(cam.fy))
+        except (CylsfmError, OSError, IndexError):
+            pass
+    return DEFAULT_VFOV_H
+
+
 @dataclass
 class LoadedModels:
-    """Networks restored from a checkpoint, in eval mode, with their configuration."""
+    """Networks restored from a checkpoint, in eval mode, with their configuration and the run metadata
+    measured on their training data (``dataset``, see :mod:`cylsfm.model.checkpoint`)."""
 
     disp_net: DispNet
     pose_net: PoseModel
     config: TrainConfig
     step: int
     path: Path
+    dataset: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def vfov_h(self) -> float:
+        """The vertical extent of the training panoramas (:func:`training_vfov_h`)."""
+        return training_vfov_h(self.dataset, self.config)
 
 
 def load_models(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> LoadedModels:
@@ -124,4 +175,4 @@ def load_models(path: str | os.PathLike[str], device: str | torch.device = "cpu"
         ) from None
     disp.to(device).eval()
     pose.to(device).eval()
-    return LoadedModels(disp, pose, cfg, int(state["step"]), p)
+    return LoadedModels(disp, pose, cfg, int(state["step"]), p, dataset_metadata(state))

@@ -3,7 +3,10 @@
 A checkpoint is a ``torch.save`` of a plain dict (tensors, numbers, strings, lists, dicts)::
 
     format        "cylsfm-checkpoint-v1"
-    config        the resolved TrainConfig as a nested dict
+    config        the resolved TrainConfig as a nested dict (what the user chose)
+    dataset       run metadata, measured on the training data when the run started: {"vfov_h": rows of
+                  the training panoramas span h in [-vfov_h, vfov_h], or None when they are not
+                  cylindrical} (absent from checkpoints of earlier versions: dataset_metadata)
     step          optimisation steps done
     disp_net      DispNet state_dict
     pose_net      PoseExpNet state_dict
@@ -24,11 +27,13 @@ import torch
 
 from ..atomic import atomic_open
 from ..errors import CylsfmError
+from .config import config_metadata
 
 __all__ = [
     "FORMAT",
     "CheckpointError",
     "checkpoint_id",
+    "dataset_metadata",
     "load_checkpoint",
     "resolve_checkpoint",
     "save_checkpoint",
@@ -85,3 +90,12 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
             raise CheckpointError(f"{p}: incomplete checkpoint, missing {key!r}")
     state["path"] = str(p)
     return state
+
+
+def dataset_metadata(state: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's run metadata (``dataset``, see the module docstring); for a checkpoint of an earlier
+    version, what its configuration recorded (:func:`~cylsfm.model.config.config_metadata`)."""
+    recorded = state.get("dataset")
+    if isinstance(recorded, dict):
+        return dict(recorded)
+    return config_metadata(state.get("config"))

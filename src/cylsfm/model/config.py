@@ -1,7 +1,9 @@
 """Typed training configuration: dataclasses, presets, YAML files and command-line overrides.
 
 A run's resolved configuration is saved as ``RUN/config.yaml`` and inside every checkpoint, so that a
-checkpoint alone rebuilds its networks and knows the image size and projection it was trained on.
+checkpoint alone rebuilds its networks and knows the image size and projection it was trained on. It holds
+only what the user chose: what a run measures on its data is the checkpoint's run metadata
+(:mod:`cylsfm.model.checkpoint`).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ __all__ = [
     "TrainConfig",
     "apply_overrides",
     "config_from_dict",
+    "config_metadata",
     "config_to_dict",
     "load_config",
     "preset",
@@ -58,7 +61,6 @@ class DataConfig:
     mask: str | None = None  # image of pixels to use (white), e.g. the helmet excluded
     workers: int | None = None  # loader processes; None: 0 on the CPU with cached frames, else 2
     cache: bool | str = "auto"  # frames decoded once and kept in memory (auto: when they fit easily)
-    vfov_h: float | None = None  # recorded when training starts: rows span h in [-vfov_h, vfov_h]
 
 
 @dataclass
@@ -289,9 +291,33 @@ REMOVED = {
 REMOVED_AT = "94a2060"
 
 
+#: What earlier versions recorded in the configuration although the run measured it on its data: now the
+#: checkpoint's run metadata. ``key -> its name there``. A configuration that holds one loads without it;
+#: :func:`config_metadata` reads its value.
+MOVED_TO_METADATA = {"data.vfov_h": "vfov_h"}
+
+
+def config_metadata(data: Any) -> dict[str, Any]:
+    """The run metadata that a configuration saved by an earlier version holds (:data:`MOVED_TO_METADATA`;
+    values that were not yet measured, ``None``, are left out)."""
+    out = {}
+    for key, name in MOVED_TO_METADATA.items():
+        node = data
+        for part in key.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        if node is not None:
+            out[name] = node
+    return out
+
+
 def _drop_removed(data: dict[str, Any], where: str) -> dict[str, Any]:
-    """``data`` without the :data:`REMOVED` settings it holds "off"; one held on is a ``ConfigError``."""
+    """``data`` without the :data:`REMOVED` settings it holds "off" (one held on is a ``ConfigError``) and
+    without the run metadata of :data:`MOVED_TO_METADATA`."""
     out = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    for key in MOVED_TO_METADATA:
+        section, name = key.split(".")
+        if isinstance(out.get(section), dict):
+            out[section].pop(name, None)
     for key, off in REMOVED.items():
         *section, name = key.split(".")
         node = out.get(section[0]) if section else out
@@ -399,7 +425,7 @@ def resumed_config(saved: TrainConfig, asked: TrainConfig) -> TrainConfig:
     ignored = [
         f"{k} (kept {saved_d.get(k)!r}, asked {v!r})"
         for k, v in asked_d.items()
-        if k not in RESUMABLE_KEYS and v != saved_d.get(k) and k != "data.vfov_h"
+        if k not in RESUMABLE_KEYS and v != saved_d.get(k)
     ]
     if ignored:
         warnings.warn(

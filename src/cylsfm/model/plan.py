@@ -1,7 +1,7 @@
 """Which inputs a model can take, and how they reach it: the model's cylinder and each input's plan.
 
 The networks expect the panoramas they were trained on: full 360-degree cylindrical panoramas whose rows
-span ``h`` in ``[-vfov_h, vfov_h]`` (:func:`model_vfov_h`) with the training aspect ratio; for a model
+span ``h`` in ``[-vfov_h, vfov_h]`` (``Predictor.vfov_h``, :func:`model_vfov_h`) with the training aspect ratio; for a model
 trained on centred crops (``data.fov < 360``), the network sees only the crop of them.
 
 * Without a camera, an input must have that aspect ratio (width/height within :data:`ASPECT_TOLERANCE`);
@@ -31,7 +31,9 @@ import torch
 from ..data.convert import to_cylinder
 from ..data.io import load_mask
 from ..errors import CylsfmError
-from ..geometry import Camera, CylindricalCamera, EquirectangularCamera, PinholeCamera, load_camera
+from ..geometry import Camera, CylindricalCamera, EquirectangularCamera, PinholeCamera
+from .build import DEFAULT_VFOV_H, LoadedModels, training_vfov_h
+from .config import TrainConfig
 from .predictor import Predictor
 
 __all__ = [
@@ -49,34 +51,22 @@ __all__ = [
 
 #: Relative tolerance on the aspect ratio (and vertical field of view) matching the model's.
 ASPECT_TOLERANCE = 0.02
-#: Vertical half-extent ``vfov_h`` of the training panoramas when the training data does not say otherwise.
-DEFAULT_VFOV_H = 1.0
 #: Smallest fraction of the network's view that a converted input must cover (the rest would be blank).
 MIN_COVERAGE = 0.9
 
 
-def model_vfov_h(config: Any) -> float:
+def model_vfov_h(model: Predictor | LoadedModels | TrainConfig) -> float:
     """The vertical extent ``vfov_h`` (rows span ``h`` in ``[-vfov_h, vfov_h]``) the model was trained on.
 
-    Recorded in the configuration when training starts (``config.data.vfov_h``); for older configurations
-    read from the training dataset's ``camera.json`` (``height / (2 fy)``) when ``config.data.root`` is still
-    there and holds a cylindrical camera; otherwise :data:`DEFAULT_VFOV_H` (1.0, +-45 degrees: the
-    cameras of ``cylsfm synth`` and of the paper's preparation). Checkpoints store no camera.
+    ``model_vfov_h(predictor)`` is ``predictor.vfov_h``: the run metadata of its checkpoint
+    (:func:`~cylsfm.model.build.training_vfov_h`). Given a configuration alone (the earlier call form,
+    ``model_vfov_h(predictor.config)``), which records no measurement, only the fallbacks of checkpoints
+    without one: the training dataset's ``camera.json`` when ``config.data.root`` is still there, otherwise
+    :data:`DEFAULT_VFOV_H`.
     """
-    recorded = getattr(getattr(config, "data", None), "vfov_h", None)
-    if recorded:
-        return float(recorded)
-    root = getattr(getattr(config, "data", None), "root", "") or ""
-    if root:
-        try:
-            from ..data.format import find_sequence_dirs
-
-            cam = load_camera(find_sequence_dirs(root)[0] / "camera.json")
-            if isinstance(cam, CylindricalCamera) and cam.wraps:
-                return float(cam.height) / (2.0 * float(cam.fy))
-        except (CylsfmError, OSError):
-            pass
-    return DEFAULT_VFOV_H
+    if isinstance(model, Predictor | LoadedModels):
+        return model.vfov_h
+    return training_vfov_h({}, model)
 
 
 def model_camera(predictor: Predictor, vfov_h: float | None = None) -> CylindricalCamera:
@@ -84,11 +74,10 @@ def model_camera(predictor: Predictor, vfov_h: float | None = None) -> Cylindric
 
     ``CylindricalCamera.full(W, H, vfov_h)`` with ``(W, H)`` the network's input size (for a model trained
     on ``fov``-degree crops, ``W`` is the full turn around them: ``config.data.width`` is the panorama's
-    width, the crop comes after it). ``vfov_h`` defaults to :func:`model_vfov_h` of the checkpoint's
-    configuration.
+    width, the crop comes after it). ``vfov_h`` defaults to the model's own, ``predictor.vfov_h``.
     """
     if vfov_h is None:
-        vfov_h = model_vfov_h(predictor.config)
+        vfov_h = predictor.vfov_h
     return CylindricalCamera.full(predictor.size[0], predictor.size[1], vfov_h)
 
 

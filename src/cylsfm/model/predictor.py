@@ -98,6 +98,9 @@ class Predictor:
         self.window_length = int(models.config.data.seq_length)
         #: frames between two of a window's frames in training (the spacing of the steps it learned)
         self.frame_stride = int(models.config.data.stride)
+        #: rows of the training panoramas span ``h`` in ``[-vfov_h, vfov_h]`` (the run's measurement,
+        #: :func:`cylsfm.model.build.training_vfov_h`): what the networks expect of a panorama's rows
+        self.vfov_h = models.vfov_h
         pairs = bool(models.pose_net.pairs)
         if pose_iterations is None:
             pose_iterations = DEFAULT_POSE_ITERATIONS if pairs else 0

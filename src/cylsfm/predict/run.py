@@ -26,7 +26,7 @@ from ..export.colorize import colorize_depth, depth_picture, side_by_side
 from ..geometry import Camera, CylindricalCamera, load_camera
 from ..model import Predictor
 from ..model.checkpoint import checkpoint_id
-from ..model.plan import Plan, model_vfov_h, network_images, network_mask, plan_input
+from ..model.plan import Plan, network_images, network_mask, plan_input
 from ..runtime import file_id, fingerprint, progress_bar
 from .scale import RideScale, network_depth, ride_scale
 
@@ -162,7 +162,7 @@ class _Plans:
         self, predictor: Predictor, camera: Camera | None, camera_path: str | None, mask: Path | None
     ):
         self.predictor, self.camera, self.camera_path, self.mask_file = predictor, camera, camera_path, mask
-        self.vfov_h = model_vfov_h(predictor.config)
+        self.vfov_h = predictor.vfov_h
         self.plans: dict[tuple[str, tuple[int, int]], Plan] = {}
         self.masks: dict[tuple[str, tuple[int, int]], torch.Tensor | None] = {}
 

@@ -22,7 +22,6 @@ import shutil
 import sys
 import time
 import warnings
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +35,7 @@ from ..data.index import build_index
 from ..data.strips import StripDataset, is_strip_dataset
 from ..errors import CylsfmError
 from ..model.build import build_models, upgrade_pose_state
-from ..model.checkpoint import load_checkpoint, save_checkpoint
+from ..model.checkpoint import dataset_metadata, load_checkpoint, save_checkpoint
 from ..model.config import TrainConfig, config_from_dict, config_to_dict, resumed_config, save_config
 from ..runtime import autocast_dtype, network_precision, prefers_channels_last, progress_bar
 from .distributed import init_distributed
@@ -97,8 +96,10 @@ class Trainer:
                 f"{cfg.data.mask}: --mask needs a dataset of format v1 (cylsfm prepare); the strips of the "
                 "original SfMLearner code carry no masks"
             )
-        if cfg.data.vfov_h is None:  # what the network will expect of panoramas given to it later
-            cfg = self.cfg = replace(cfg, data=replace(cfg.data, vfov_h=self._vfov_h()))
+        # run metadata: what the networks will expect of panoramas given to them later, measured once
+        self.dataset_metadata = dataset_metadata(state) if state is not None else {}
+        if self.dataset_metadata.get("vfov_h") is None:
+            self.dataset_metadata["vfov_h"] = self._vfov_h()
 
         # ---- networks, the scaffold, the objective and the optimiser
         disp_net, pose_net = build_models(cfg)
@@ -295,6 +296,7 @@ class Trainer:
     def state(self) -> dict[str, Any]:
         return {
             "config": config_to_dict(self.cfg),
+            "dataset": dict(self.dataset_metadata),
             "step": self.step,
             "disp_net": self.model.disp_net.state_dict(),
             "pose_net": self.model.pose_net.state_dict(),

@@ -185,3 +185,68 @@ def test_the_trajectory_is_the_poses_seen_from_the_first(page, tmp_path):
     positions = np.frombuffer(base64.b64decode(_scene_data(tmp_path / "out")["trajectory"]), dtype="<f4")
     expected = [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [0.5, 0.25, 1.0]]
     np.testing.assert_allclose(positions.reshape(-1, 3), expected, atol=1e-6)
+
+
+# The page's script run by Node.js on the real three.js, with a stand-in for the browser: no WebGL renderer
+# (it keeps the camera it was asked to draw with), no textures, pointer events dispatched by hand.
+NODE_PAGE = r"""
+const fs = require("fs"), path = require("path");
+const dir = process.argv[2];
+const THREE = require(path.join(dir, "three.min.js"));
+global.THREE = THREE;
+function eventTarget() {
+  const handlers = {};
+  return {
+    addEventListener(type, fn) { (handlers[type] = handlers[type] || []).push(fn); },
+    dispatchEvent(e) { (handlers[e.type] || []).forEach((fn) => fn(e)); },
+  };
+}
+const canvas = eventTarget();
+global.window = Object.assign(eventTarget(), {
+  innerWidth: 480, innerHeight: 320, devicePixelRatio: 1, location: { hash: process.argv[3] },
+});
+global.PointerEvent = function (type, init) { return Object.assign({ type: type }, init); };
+global.atob = (s) => Buffer.from(s, "base64").toString("binary");
+global.document = {
+  title: "", body: { appendChild() {} },
+  getElementById() { return { addEventListener() {}, textContent: "" }; },
+};
+let drawnWith = null;
+THREE.WebGLRenderer = function () {
+  return {
+    domElement: canvas, capabilities: { getMaxAnisotropy: () => 1 },
+    setPixelRatio() {}, setSize() {}, render(scene, camera) { drawnWith = camera; },
+  };
+};
+THREE.TextureLoader = function () { return { load() { return new THREE.Texture(); } }; };
+eval(fs.readFileSync(path.join(dir, "scene.js"), "utf8"));
+eval(fs.readFileSync(path.join(dir, "viewer.js"), "utf8"));
+drawnWith.updateMatrixWorld();
+const ahead = new THREE.Vector3(0, 0, -10).project(drawnWith);  // straight ahead before any drag
+process.stdout.write(JSON.stringify([ahead.x * window.innerWidth / 2, -ahead.y * window.innerHeight / 2]));
+"""
+
+
+@pytest.mark.parametrize("drag", [(100, 0), (-100, 0), (0, 60), (0, -60), (80, -50)])
+def test_a_drag_moves_the_scene_with_the_pointer(page, tmp_path, drag):
+    """The page's pointer handlers, run by Node.js: after a drag of (dx, dy) pixels (#drag=DX,DY, as a
+    user's), what was straight ahead is on the screen about (dx, dy) pixels from the centre: the scene
+    follows the pointer (dragging right turns the view left, dragging down tilts it up), not the reverse."""
+    node = shutil.which("node") or shutil.which("nodejs")
+    if node is None:
+        pytest.skip("no Node.js to run the page's script")
+    script = tmp_path / "page.js"
+    script.write_text(NODE_PAGE)
+    hash_ = f"#drag={drag[0]},{drag[1]}"
+    out = subprocess.run(
+        [node, str(script), str(page / "out"), hash_], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    moved = np.array(json.loads(out.stdout))
+    for axis, (want, got) in enumerate(zip(drag, moved, strict=True)):
+        if want == 0:
+            assert abs(got) < 1, f"{hash_}: the scene moved {got:.1f} px along axis {axis}"
+        else:
+            assert 0.6 < got / want < 1.4, (
+                f"{hash_}: what was ahead moved by {moved.round(1)} px on the screen"
+            )

@@ -216,12 +216,23 @@ def test_a_size_that_training_refuses_is_warned_about(scene, tmp_path, capsys):
 
 def test_sigterm_stops_prepare_like_ctrl_c_and_the_run_continues(scene, tmp_path, monkeypatch, capsys):
     """SIGTERM after the third frame of a video: exit status 143 with one line, the frames written so far
-    kept, and the same command then finishes a dataset identical, byte for byte, to an uninterrupted one."""
+    kept, and the same command then finishes a dataset identical, byte for byte, to an uninterrupted one,
+    writing only the frames that were missing (those on disk are not written again).
+
+    The frames are converted one at a time here (not 8 at once), so that some are on disk when the signal
+    comes."""
+    import dataclasses
     import os
     import signal
 
     from cylsfm.data.prepare import equirect
 
+    init = equirect._Converter.__init__
+
+    def one_at_a_time(self, seq, resample, options):
+        init(self, seq, resample, dataclasses.replace(options, batch=1))
+
+    monkeypatch.setattr(equirect._Converter, "__init__", one_at_a_time)
     args = ["prepare", "equirect", str(scene["video"]), "--size", "128x32", "--no-progress"]
     assert main([*args, str(tmp_path / "whole")]) == 0
     add, calls = equirect._Converter.add, {"n": 0}
@@ -237,9 +248,32 @@ def test_sigterm_stops_prepare_like_ctrl_c_and_the_run_continues(scene, tmp_path
     assert main([*args, str(tmp_path / "cut")]) == 143
     assert "interrupted by SIGTERM" in capsys.readouterr().err
     monkeypatch.setattr(equirect._Converter, "add", add)
+    kept = {  # the frames written before the signal, as files: these must not be written again
+        p.relative_to(tmp_path / "cut"): (p.stat().st_ino, p.stat().st_mtime_ns)
+        for p in (tmp_path / "cut").rglob("images/*.png")
+    }
+    assert len(kept) >= 2
+    from cylsfm.data.prepare.sequence import PreparedSequence
+
+    write, written = PreparedSequence.add, []
+
+    def recorded_write(self, frame, *a, **k):
+        written.append(frame)
+        return write(self, frame, *a, **k)
+
+    monkeypatch.setattr(PreparedSequence, "add", recorded_write)
     assert main([*args, str(tmp_path / "cut")]) == 0
+    monkeypatch.setattr(PreparedSequence, "add", write)
+    again = sorted({rel.stem for rel in kept} & set(written))
+    assert not again, f"the resumed run wrote again the frames {again} written before SIGTERM"
+    for rel, (inode, mtime) in kept.items():
+        stat = (tmp_path / "cut" / rel).stat()
+        assert (stat.st_ino, stat.st_mtime_ns) == (inode, mtime), f"{rel} was written again"
     whole = sorted(p.relative_to(tmp_path / "whole") for p in (tmp_path / "whole").rglob("*.png"))
     cut = sorted(p.relative_to(tmp_path / "cut") for p in (tmp_path / "cut").rglob("*.png"))
     assert whole == cut and len(whole) >= 4
+    assert sorted(written) == sorted(
+        rel.stem for rel in whole if rel not in kept and rel.parent.name == "images"
+    )
     for rel in whole:
         assert (tmp_path / "whole" / rel).read_bytes() == (tmp_path / "cut" / rel).read_bytes(), rel

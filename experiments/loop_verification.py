@@ -41,7 +41,7 @@ def pairs_of(seq: Path, out: Path, checkpoint: str) -> list[dict]:
     _, gt = read_tum(seq / "poses.txt")
     kept = []
     for p in (result.loops or {"pairs": []})["pairs"]:
-        if "drift" not in p["why"]:
+        if p["reason"] not in ("beyond_drift", "turned_beyond_drift"):
             kept.append({**p, **judge(p, gt, out)})
     return kept
 

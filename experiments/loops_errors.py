@@ -7,13 +7,13 @@ Usage::
 
 ``OUT``: an output folder of ``experiments/loops.py`` (its ``data/`` and ``odometry/`` rides). For each
 closed or out-and-back ride, the APE (Sim(3), m) of the refined odometry and of its loops closed by
-:func:`cylsfm.odometry.posegraph.close_loops`, and the same for the steps with one part of their error
+:func:`cylsfm.odometry.loops.graph.close_loops`, and the same for the steps with one part of their error
 removed (replaced by the truth's, the truth brought to the odometry's unit by the ratio of median step
 lengths): the rotations (``rotation true``), the length of each translation (``length true``), and both
 rotation and direction (``only lengths wrong``); then the step lengths corrected by the camera height the
 odometry fitted to each frame's depth (``height unit``: the depth's unit, frame by frame). With
 ``--grid``, the closed APE over the refined APE for each step uncertainty of a small grid (rotation,
-translation, scale): the settings of :class:`~cylsfm.odometry.posegraph.GraphSettings` against others.
+translation, scale): the settings of :class:`~cylsfm.odometry.loops.graph.GraphSettings` against others.
 Nothing is run again: odometry's saved state holds its steps and verified loops.
 """
 
@@ -27,18 +27,22 @@ import numpy as np
 
 from cylsfm.data.io import read_tum
 from cylsfm.evaluate.pose_metrics import chain_poses, trajectory_metrics
-from cylsfm.odometry.loops import loops_from_rows
-from cylsfm.odometry.posegraph import GraphSettings, close_loops
+from cylsfm.odometry.loops import GraphSettings, close_loops
+from cylsfm.odometry.state import STATE_FILE, State
 
 
 def load(out: Path, name: str):
     """``(refined steps [M-1,4,4], loops, true c2w [M,4,4], times [M], true steps, heights [M])``."""
     kind, town = name.rsplit("-", 1)
-    with np.load(out / "odometry" / name / ".odometry-state.npz", allow_pickle=False) as s:
-        steps, rows, why, heights = s["refined"], s["loops"], list(s["loop_why"]), s["heights"]
+    state = State.load(out / "odometry" / name / STATE_FILE, None)
+    if state is None:
+        raise SystemExit(
+            f"{out / 'odometry' / name}: no saved odometry state (run experiments/loops.py first)"
+        )
+    steps, heights = np.stack(state.refined), np.asarray(state.heights)
     times, gt = read_tum(out / "data" / kind / f"seq_{town}" / "poses.txt")
     truth = np.linalg.inv(gt[1:]) @ gt[:-1]  # T_{j->j+1}
-    return steps, loops_from_rows(rows, why), gt, times, truth, heights
+    return steps, state.loops or [], gt, times, truth, heights
 
 
 def ape(gt: np.ndarray, times: np.ndarray, c2w: np.ndarray) -> float:

@@ -7,8 +7,8 @@ Usage::
 
 ``OUT`` is an output folder of ``experiments/loops.py`` (its ``odometry/RIDE`` runs and ``data``), each
 ``RIDE`` a name such as ``block-000``. Every ride's refined steps and verified loops are read from its
-saved state (nothing is tracked or verified again) and closed by :func:`cylsfm.odometry.posegraph.close_loops`
-with each setting of a grid of :class:`~cylsfm.odometry.posegraph.GraphSettings`; printed per setting:
+saved state (nothing is tracked or verified again) and closed by :func:`cylsfm.odometry.loops.graph.close_loops`
+with each setting of a grid of :class:`~cylsfm.odometry.loops.graph.GraphSettings`; printed per setting:
 the geometric mean and the largest of the rides' APE ratios (loops closed / refined), best first, and
 today's defaults.
 """
@@ -23,8 +23,8 @@ import numpy as np
 
 from cylsfm.data.io import read_tum
 from cylsfm.evaluate.pose_metrics import chain_poses, trajectory_metrics
-from cylsfm.odometry.loops import loops_from_rows
-from cylsfm.odometry.posegraph import GraphSettings, close_loops
+from cylsfm.odometry.loops import GraphSettings, close_loops
+from cylsfm.odometry.state import STATE_FILE, State
 
 GRID = {
     "step_rotation_deg": [0.1, 0.25, 1.0],
@@ -37,9 +37,12 @@ GRID = {
 
 def load(out: Path, name: str) -> tuple:
     route, town = name.rsplit("-", 1)
-    with np.load(out / "odometry" / name / ".odometry-state.npz", allow_pickle=False) as state:
-        steps = np.asarray(state["refined"], dtype=np.float64)
-        loops = loops_from_rows(state["loops"], [str(w) for w in state["loop_why"]])
+    state = State.load(out / "odometry" / name / STATE_FILE, None)
+    if state is None:
+        raise SystemExit(
+            f"{out / 'odometry' / name}: no saved odometry state (run experiments/loops.py first)"
+        )
+    steps, loops = np.stack(state.refined).astype(np.float64), state.loops or []
     times, gt = read_tum(out / "data" / route / f"seq_{town}" / "poses.txt")
     base = trajectory_metrics(gt, times, chain_poses(steps), times)[0]["ape_rmse"]
     return steps, loops, gt, times, base

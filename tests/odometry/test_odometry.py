@@ -15,11 +15,11 @@ import torch
 
 import cylsfm
 from cylsfm.cli import main
-from cylsfm.data.format import SequenceWriter
+from cylsfm.data.format import SequenceWriter, load_image
 from cylsfm.data.synth.room import make_pose, render_room
 from cylsfm.geometry import CylindricalCamera, rotation_y
 from cylsfm.odometry import OdometrySettings
-from cylsfm.odometry import run as odometry_run
+from cylsfm.odometry import track as odometry_track
 from cylsfm.odometry.track import Tracker, keyframe_steps
 
 N_FRAMES = 10
@@ -84,7 +84,7 @@ def test_library_call_and_metres_from_the_camera_height(ckpt, ride, tmp_path):
     assert "camera height 1.5 m" in (tmp_path / "o" / "trajectory.txt").read_text()
     depth = np.load(tmp_path / "o" / "depth" / f"{result.frames[3]}.npy")
     assert depth.shape == (32, 128)
-    assert not (tmp_path / "o" / odometry_run.RAW_DEPTH).exists()
+    assert not (tmp_path / "o" / odometry_track.RAW_DEPTH).exists()
     assert len(result.c2w) == N_FRAMES and result.metrics is not None
 
 
@@ -109,7 +109,7 @@ def test_steady_height_changes_the_lengths_only(ckpt, ride, tmp_path):
 
 
 def test_a_killed_run_continues_to_the_same_trajectory(ckpt, ride, tmp_path, monkeypatch):
-    monkeypatch.setattr(odometry_run, "CHUNK", 3)
+    monkeypatch.setattr(odometry_track, "CHUNK", 3)
     whole = cylsfm.odometry(
         ride, ckpt, tmp_path / "whole", OdometrySettings(refine=True, device="cpu", progress=False)
     )
@@ -128,12 +128,14 @@ def test_a_killed_run_continues_to_the_same_trajectory(ckpt, ride, tmp_path, mon
             ride, ckpt, tmp_path / "killed", OdometrySettings(refine=True, device="cpu", progress=False)
         )
     assert not (tmp_path / "killed" / "trajectory.txt").exists()
-    with np.load(tmp_path / "killed" / odometry_run.STATE_FILE) as saved:  # two chunks of 3 frames were done
+    with np.load(
+        tmp_path / "killed" / odometry_track.STATE_FILE
+    ) as saved:  # two chunks of 3 frames were done
         assert len(saved["stems"]) == 6 and not bool(saved["finished"])
     # the work done on resuming: the frames after the saved ones pushed and their depth predicted, once each
     pushed: list[list[int]] = []
     depth_frames: list[int] = []
-    depth = odometry_run.Predictor.depth
+    depth = odometry_track.Predictor.depth
 
     def recording_push(self, indices, images):
         pushed.append(list(indices))
@@ -144,7 +146,7 @@ def test_a_killed_run_continues_to_the_same_trajectory(ckpt, ride, tmp_path, mon
         return depth(self, images, camera)
 
     monkeypatch.setattr(Tracker, "push", recording_push)
-    monkeypatch.setattr(odometry_run.Predictor, "depth", counting_depth)
+    monkeypatch.setattr(odometry_track.Predictor, "depth", counting_depth)
     resumed = cylsfm.odometry(
         ride, ckpt, tmp_path / "killed", OdometrySettings(refine=True, device="cpu", progress=False)
     )
@@ -172,6 +174,16 @@ def test_a_video_ride(ckpt, ride, tmp_path):
     assert len(result.c2w) == N_FRAMES
     np.testing.assert_allclose(result.times, np.arange(N_FRAMES) / 5, atol=1e-6)
     assert result.metrics is None
+    # the frames come in the video's order: each decoded frame is nearest its own source image
+    from cylsfm.odometry import open_ride
+
+    sources = np.stack([load_image(f) for f in sorted((ride / "images").iterdir())]).astype(np.float32)
+    decoded = [(i, rgb) for i, _, _, rgb in open_ride(video).read()]
+    assert [i for i, _ in decoded] == list(range(N_FRAMES))
+    nearest = [
+        int(np.abs(sources - rgb.astype(np.float32)).mean(axis=(1, 2, 3)).argmin()) for _, rgb in decoded
+    ]
+    assert nearest == list(range(N_FRAMES)), nearest
     rot = np.degrees(np.arctan2(result.c2w[-1, 0, 2], result.c2w[-1, 2, 2]))
     assert math.isfinite(rot)
 
@@ -184,7 +196,8 @@ def test_bad_inputs_are_one_line_errors_naming_the_file(ckpt, ride, tmp_path, ca
     wrong = tmp_path / "camera.json"
     CylindricalCamera.full(100, 50).to_json(wrong)
     assert _run(ckpt, ride, "--out", tmp_path / "b", "--camera", wrong) == 2
-    assert str(wrong) in capsys.readouterr().err or str(ride) in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("cylsfm odometry: error:") and str(wrong) in err, err
     bad_ckpt = tmp_path / "other.pt"
     bad_ckpt.write_bytes(b"garbage")
     assert _run(bad_ckpt, ride, "--out", tmp_path / "c") == 2
@@ -223,7 +236,7 @@ def test_sigterm_stops_odometry_like_ctrl_c_and_the_run_continues(ckpt, ride, tm
 
     from cylsfm.data.io import read_tum
 
-    monkeypatch.setattr(odometry_run, "CHUNK", 3)
+    monkeypatch.setattr(odometry_track, "CHUNK", 3)
     args = ["odometry", str(ride), "--checkpoint", str(ckpt), "--refine", "--device", "cpu", "--no-progress"]
     assert main([*args, "--out", str(tmp_path / "whole")]) == 0
     push, calls = Tracker.push, {"n": 0}
@@ -239,7 +252,7 @@ def test_sigterm_stops_odometry_like_ctrl_c_and_the_run_continues(ckpt, ride, tm
     assert main([*args, "--out", str(tmp_path / "cut")]) == 143
     assert "interrupted by SIGTERM" in capsys.readouterr().err
     assert not (tmp_path / "cut" / "trajectory.txt").exists()
-    with np.load(tmp_path / "cut" / odometry_run.STATE_FILE) as saved:
+    with np.load(tmp_path / "cut" / odometry_track.STATE_FILE) as saved:
         assert len(saved["stems"]) == 6 and not bool(saved["finished"])
     monkeypatch.setattr(Tracker, "push", push)
     assert main([*args, "--out", str(tmp_path / "cut")]) == 0
@@ -321,7 +334,7 @@ def test_the_shared_pairs_and_depth_give_the_same_trajectory(ckpt, ride, tmp_pat
         src = torch.stack((frames[: n - 2], frames[2:]), 1)
         return self.poses(frames[1 : n - 1], src, camera, roll, mask)
 
-    monkeypatch.setattr(odometry_run.Predictor, "ride_poses", plain)
+    monkeypatch.setattr(odometry_track.Predictor, "ride_poses", plain)
     slow = cylsfm.odometry(ride, ckpt, tmp_path / "slow", settings)
     assert len(given) >= 2 and all(given)  # the search and the windows were handed it
     # float tolerance: the two read the frames in other batches, and on AVX2-only CPUs oneDNN's
@@ -339,13 +352,13 @@ def test_the_windows_of_the_search_for_the_direction_of_travel_are_not_computed_
     poses = [make_pose(0.3, 0.1, -2.0 + 0.3 * i, yaw_deg=facing_deg) for i in range(N_FRAMES)]
     seq = _room_ride(tmp_path / "straight" / "ride", poses)
     read = []
-    original = odometry_run.Predictor.ride_poses
+    original = odometry_track.Predictor.ride_poses
 
     def counted(self, frames, *args, **kwargs):
         read.append(frames.shape[0] - 2)  # the windows of these frames
         return original(self, frames, *args, **kwargs)
 
-    monkeypatch.setattr(odometry_run.Predictor, "ride_poses", counted)
+    monkeypatch.setattr(odometry_track.Predictor, "ride_poses", counted)
     settings = OdometrySettings(refine=True, depth_from=seq.parent, device="cpu", progress=False, amp=False)
     searched = cylsfm.odometry(seq, ckpt, tmp_path / "searched", settings)
     found = json.loads((tmp_path / "searched" / "odometry.json").read_text())["direction_of_travel"]

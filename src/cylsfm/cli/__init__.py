@@ -10,6 +10,7 @@ exit status 2, never as a traceback.
 from __future__ import annotations
 
 import argparse
+import logging
 import signal
 import sys
 import threading
@@ -67,9 +68,26 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+class _Notes(logging.Handler):
+    """The library's notes (``logging`` under ``cylsfm``, level INFO and up) printed on the standard error
+    stream of the moment, one line each."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print(self.format(record), file=sys.stderr)
+
+
+def _show_notes() -> None:
+    """Route the library's notes to the terminal, once per process."""
+    logger = logging.getLogger("cylsfm")
+    if not any(isinstance(h, _Notes) for h in logger.handlers):
+        logger.addHandler(_Notes())
+        logger.setLevel(logging.INFO)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``cylsfm ARGS``; returns the exit status (0, 2 for bad input, 130 when interrupted by Ctrl-C,
     143 by SIGTERM)."""
+    _show_notes()
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 
 from .base import add_amp_argument, command
+from .odometry import add_ride_options, ride_settings
 
 
 def _depth_source(p: argparse.ArgumentParser) -> None:
@@ -38,20 +39,17 @@ def _depth_source(p: argparse.ArgumentParser) -> None:
 
 
 def _ride_args(c: argparse.ArgumentParser) -> None:
-    """The options of an export of a whole ride: its input and the odometry that poses it."""
+    """The options of an export of a whole ride: its input and the odometry that poses it (every option
+    of ``cylsfm odometry``)."""
     c.add_argument("input", metavar="INPUT", help="a video file, a folder of frames, or a dataset sequence")
     c.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
-    c.add_argument("--refine", action="store_true", help="refine the odometry (as cylsfm odometry --refine)")
-    c.add_argument("--camera", help="camera.json of the frames (as for cylsfm odometry)")
-    c.add_argument("--camera-height", type=float, metavar="METRES", help="poses and points in metres")
-    c.add_argument("--fps", type=float, help="take about N frames a second from a video")
-    c.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
     c.add_argument(
-        "--mask", metavar="IMAGE", help="the camera's own mount or helmet (black): no points from it"
+        "--odometry",
+        metavar="DIR",
+        help="the poses of this finished output of cylsfm odometry (made with the same input, checkpoint "
+        "and options, which its fingerprint must confirm) instead of running the odometry again",
     )
-    c.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
-    add_amp_argument(c)
-    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_ride_options(c)
 
 
 def _colmap_args(sub) -> None:
@@ -61,7 +59,12 @@ def _colmap_args(sub) -> None:
         "ride's odometry, with points from the depth): for Gaussian splatting and NeRF trainers",
     )
     _ride_args(c)
-    c.add_argument("out", metavar="OUT", help="the folder to write: images/, sparse/0/, transforms.json")
+    c.add_argument(
+        "out",
+        metavar="OUT",
+        help="the folder to write: images/, sparse/0/, transforms.json (the odometry, unless --odometry, "
+        "goes to OUT/odometry/)",
+    )
     c.add_argument("--views", type=int, default=4, help="pinhole views per pitch, turned evenly (default 4)")
     c.add_argument(
         "--pitches",
@@ -83,7 +86,9 @@ def _colmap_args(sub) -> None:
     )
     _ride_args(r)
     r.add_argument(
-        "out", metavar="OUT.rrd", help="the recording to write (the odometry goes to OUT.rrd.odometry/)"
+        "out",
+        metavar="OUT.rrd",
+        help="the recording to write (the odometry, unless --odometry, goes to OUT.rrd.odometry/)",
     )
     r.add_argument("--points-per-frame", type=int, default=4000, help="3D points from each depth map")
 
@@ -267,21 +272,13 @@ def _stereo_video(args: argparse.Namespace) -> int:
 
 def _ride(args: argparse.Namespace) -> int:
     from ..export.colmap import ViewOptions
-    from ..odometry import OdometrySettings, export_colmap, export_rerun
+    from ..odometry import export_colmap, export_rerun
 
-    settings = OdometrySettings(
-        camera=args.camera,
-        refine=args.refine,
-        camera_height=args.camera_height,
-        fps=args.fps,
-        stride=args.stride,
-        device=args.device,
-        amp=args.amp,
-        progress=not args.no_progress,
-        mask=args.mask,
-    )
+    settings = ride_settings(args)
     if args.action == "rerun":
-        s = export_rerun(args.input, args.checkpoint, args.out, settings, args.points_per_frame)
+        s = export_rerun(
+            args.input, args.checkpoint, args.out, settings, args.points_per_frame, args.odometry
+        )
         print(f"wrote {s['path']}: {s['frames']} frames ({s['unit']}); open it with: rerun {s['path']}")
         return 0
     views = ViewOptions(
@@ -293,7 +290,7 @@ def _ride(args: argparse.Namespace) -> int:
         image_format=args.image_format,
         text=args.text,
     )
-    s = export_colmap(args.input, args.checkpoint, args.out, settings, views)
+    s = export_colmap(args.input, args.checkpoint, args.out, settings, views, args.odometry)
     print(
         f"wrote {args.out}: {s['images']} views of {s['panoramas']} panoramas, {s['points']} points ({s['unit']}); "
         "COLMAP model in sparse/0, nerfstudio's transforms.json"

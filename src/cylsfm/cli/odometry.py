@@ -12,10 +12,17 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", metavar="INPUT", help="a video file, a folder of frames, or a dataset sequence")
     p.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
     p.add_argument("--out", required=True, help="output directory (a killed run in it continues)")
+    add_ride_options(p)
+    p.add_argument("--depth", action="store_true", help="also write every frame's depth: OUT/depth/FRAME.npy")
+
+
+def add_ride_options(p: argparse.ArgumentParser) -> None:
+    """The options of the odometry of a ride, shared by ``cylsfm odometry`` and the exports of a ride."""
     p.add_argument(
         "--camera",
         help="camera.json of the frames (cylindrical, equirectangular, pinhole); default: a dataset "
-        "sequence's own, or full cylindrical panoramas of the model's aspect ratio",
+        "sequence's own, else a full cylinder of the model's aspect ratio or, for frames twice as wide "
+        "as high, a full equirectangular panorama",
     )
     p.add_argument(
         "--refine",
@@ -72,7 +79,6 @@ def _odometry_args(p: argparse.ArgumentParser) -> None:
         "corrects the scale's drift). Default: on for rides of at least 200 frames with a full-panorama model",
     )
     lp.add_argument("--no-loops", dest="loops", action="store_const", const=False, help="never close loops")
-    p.add_argument("--depth", action="store_true", help="also write every frame's depth: OUT/depth/FRAME.npy")
     p.add_argument("--fps", type=float, help="take about N frames a second from a video (default: all)")
     p.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
     p.add_argument("--batch-size", type=int, default=8, help="windows and pairs per call (default 8)")
@@ -117,28 +123,9 @@ def _print_metrics(metrics: dict) -> None:
     _odometry_args,
 )
 def run_odometry(args: argparse.Namespace) -> int:
-    from ..odometry import OdometrySettings, odometry
+    from ..odometry import odometry
 
-    settings = OdometrySettings(
-        camera=args.camera,
-        refine=args.refine,
-        depth_from=args.depth_from,
-        camera_height=args.camera_height,
-        steady_height=args.steady_height,
-        save_depth_maps=args.depth,
-        fps=args.fps,
-        stride=args.stride,
-        keyframe_every=args.keyframes,
-        mount_yaw=_mount(args.mount_yaw),
-        batch_size=args.batch_size,
-        device=args.device,
-        amp=args.amp,
-        progress=not args.no_progress,
-        pose_iterations=args.pose_iterations,
-        mask=False if args.no_mask else args.mask,
-        loops=args.loops,
-    )
-    result = odometry(args.input, args.checkpoint, args.out, settings)
+    result = odometry(args.input, args.checkpoint, args.out, ride_settings(args, depth=args.depth))
     n = len(result.c2w)
     print(
         f"wrote {result.trajectory} ({n} frames, {result.unit}) in {result.seconds:.1f} s ({n / max(result.seconds, 1e-9):.1f} frames/s)"
@@ -151,3 +138,29 @@ def run_odometry(args: argparse.Namespace) -> int:
         print("against the ground truth (APE: Sim(3)-aligned; metres, degrees):")
         _print_metrics(result.metrics)
     return 0
+
+
+def ride_settings(args: argparse.Namespace, depth: bool = False):
+    """The :class:`~cylsfm.odometry.OdometrySettings` of the options of :func:`add_ride_options`;
+    ``depth``: write every frame's depth."""
+    from ..odometry import OdometrySettings
+
+    return OdometrySettings(
+        camera=args.camera,
+        refine=args.refine,
+        depth_from=args.depth_from,
+        camera_height=args.camera_height,
+        steady_height=args.steady_height,
+        save_depth_maps=depth,
+        fps=args.fps,
+        stride=args.stride,
+        keyframe_every=args.keyframes,
+        mount_yaw=_mount(args.mount_yaw),
+        batch_size=args.batch_size,
+        device=args.device,
+        amp=args.amp,
+        progress=not args.no_progress,
+        pose_iterations=args.pose_iterations,
+        mask=False if args.no_mask else args.mask,
+        loops=args.loops,
+    )

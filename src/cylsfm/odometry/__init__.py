@@ -9,7 +9,13 @@ For a video, a folder of frames or a dataset sequence, :func:`odometry`:
    with frame ``j``'s depth (:mod:`~cylsfm.geometry.align`: wrap-aware, coarse to fine, robust,
    Levenberg-Marquardt), starting from the network's step, or from the visual compass's yaw with the
    network's translation where that aligns better;
-3. chains the steps into camera-to-world poses and writes them.
+3. on rides that come back (``loops``), finds the places seen again and closes the loops with a pose
+   graph (:mod:`~cylsfm.odometry.loops`);
+4. chains the steps into camera-to-world poses, scales them and writes them.
+
+The run is resolved once (:mod:`~cylsfm.odometry.job`) and goes through named stages, one module each:
+:mod:`~cylsfm.odometry.track`, :mod:`~cylsfm.odometry.loops`, :mod:`~cylsfm.odometry.scale`,
+:mod:`~cylsfm.odometry.write` (the order: :mod:`~cylsfm.odometry.run`).
 
 Scale: network units, or metres when the camera's height above the ground is given (the ground fitted
 below the horizon in every frame's depth, :mod:`~cylsfm.geometry.ground`), or metres when the refinement
@@ -23,7 +29,8 @@ Files in ``OUT``::
     metrics.json             with ground truth (a dataset sequence with poses.txt): evo's APE (Sim(3)) and
                              RPE, per-step rotation and direction errors, for the trajectory, the network,
                              the visual compass, constant velocity and zero motion
-    odometry.json            frames, unit, scale, seconds and where they went
+    odometry.json            frames, unit, scale, seconds and where they went, the loops, the run's
+                             settings and their fingerprint (what exports check a given run against)
     depth/FRAME.npy          with depth maps asked for: each frame's depth (the view the network sees)
     .odometry-state.npz      progress: a killed run given the same arguments continues from it
 
@@ -38,12 +45,16 @@ from ..geometry.align import AlignConfig, AlignResult, align
 from ..geometry.ground import ground_height, metric_scale
 from .exports import export_colmap, export_rerun
 from .frames import Ride, open_ride
-from .run import OdometryResult, odometry
+from .job import Job, resolve_job
+from .loops import LoopSettings
+from .run import OdometryResult, odometry, run_job
 from .settings import OdometrySettings
 
 __all__ = [
     "AlignConfig",
     "AlignResult",
+    "Job",
+    "LoopSettings",
     "OdometryResult",
     "OdometrySettings",
     "Ride",
@@ -54,6 +65,8 @@ __all__ = [
     "metric_scale",
     "odometry",
     "open_ride",
+    "resolve_job",
+    "run_job",
 ]
 
 

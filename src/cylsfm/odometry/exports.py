@@ -1,9 +1,16 @@
 """``cylsfm export colmap`` and ``cylsfm export rerun``: a ride's odometry, its frames and their depth for
 the 3D tools users move on to: a COLMAP model and a nerfstudio ``transforms.json`` (for Gaussian splatting
-and NeRF trainers, :mod:`cylsfm.export.colmap`), a rerun recording (:mod:`cylsfm.export.rerun`)."""
+and NeRF trainers, :mod:`cylsfm.export.colmap`), a rerun recording (:mod:`cylsfm.export.rerun`).
+
+An export consumes an odometry run: the one given (``odometry=DIR``, an output of ``cylsfm odometry`` made
+with the same input, checkpoint and options, which its fingerprint in ``DIR/odometry.json`` must confirm),
+or one that it runs itself through the same pipeline, with every frame's depth. Either way the ride is
+opened, planned and the model loaded once (:func:`~cylsfm.odometry.job.resolve_job`).
+"""
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -14,17 +21,17 @@ import numpy as np
 import torch
 
 from ..data.format import load_depth
+from ..data.io import read_tum
 from ..errors import CylsfmError
 from ..export.colmap import ColmapWriter, ViewOptions
 from ..geometry import Camera
 from ..model import Predictor
-from ..model.plan import network_images, network_mask
-from .frames import open_ride
-from .run import odometry, ride_mask, ride_plan
+from .job import Job, resolve_job
+from .run import run_job
 from .settings import OdometrySettings
-from .track import network_size
+from .write import SUMMARY_FILE
 
-__all__ = ["export_colmap", "export_rerun"]
+__all__ = ["RidePoses", "export_colmap", "export_rerun", "ride_poses"]
 
 
 @dataclass
@@ -38,96 +45,169 @@ class _Frame:
     depth: np.ndarray  # [h,w] of ``depth_camera``, in the trajectory's unit
     depth_camera: Camera
     mask: np.ndarray | None  # [h,w], 0 on an occluder
+    small: torch.Tensor  # [3,h,w] the frame at the network's size, in [0, 1]
 
 
-def _ride(
-    input: Any, checkpoint: Any, work: Path, settings: OdometrySettings | None
-) -> tuple[str, Iterator[_Frame], Any]:
-    """Run the odometry (with every frame's depth) into ``work`` and give ``(unit, the frames, the
-    predictor and plan)``."""
-    opt = replace(settings or OdometrySettings(), save_depth_maps=True)
-    result = odometry(input, checkpoint, work, opt)
-    ride = open_ride(input, opt.fps, opt.stride)
-    predictor = Predictor.from_checkpoint(checkpoint, opt.device, amp=opt.amp)
-    if predictor.fov < 360:
+@dataclass
+class RidePoses:
+    """A ride posed by its odometry, for an export.
+
+    Attributes:
+        job: the resolved run (ride, networks, plan, mask, depth source).
+        c2w: the camera-to-world poses ``[M,4,4]`` in ``unit``.
+        unit: the trajectory's unit (``"metres"``, ``"network units"``, ...).
+        metres_per_unit: the scale from the network's unit (``None``: none applied).
+        depth: the folder of every frame's depth in ``unit`` (``None``: predicted again as the frames
+            are read).
+    """
+
+    job: Job
+    c2w: np.ndarray
+    unit: str
+    metres_per_unit: float | None
+    depth: Path | None
+
+    def frames(self) -> Iterator[_Frame]:
+        """The ride's frames in order, each with its pose, depth and mask."""
+        job = self.job
+        mask = None if job.mask is None else job.mask[0, 0].numpy()
+        scale = np.float32(self.metres_per_unit or 1.0)
+        n = 0
+        for index, stem, when, rgb in job.ride.read():
+            if index >= len(self.c2w):
+                break
+            with torch.inference_mode():
+                small = job.images([rgb])
+            saved = None if self.depth is None else self.depth / f"{stem}.npy"
+            if saved is not None and saved.is_file():
+                depth = load_depth(saved)
+            else:
+                depth = job.view_of(job.depth([index], small))[0, 0].cpu().numpy() * scale
+            yield _Frame(
+                index,
+                stem,
+                when,
+                rgb,
+                job.plan.camera,
+                self.c2w[index],
+                depth,
+                job.camera,
+                mask,
+                small[0].cpu(),
+            )
+            n += 1
+        if n != len(self.c2w):
+            raise CylsfmError(f"{job.ride.path}: {n} frames read for {len(self.c2w)} poses of its odometry")
+
+
+def ride_poses(
+    input: str | os.PathLike[str],
+    checkpoint: str | os.PathLike[str] | Predictor,
+    work: str | os.PathLike[str],
+    settings: OdometrySettings | None = None,
+    odometry: str | os.PathLike[str] | None = None,
+) -> RidePoses:
+    """The ride ``input`` posed for an export: the odometry run ``odometry`` when given (checked against
+    its fingerprint), else run into ``work`` (with every frame's depth; a run already there with the same
+    settings is reused, a killed one continued).
+
+    Raises:
+        CylsfmError: as :func:`cylsfm.odometry`; a model that does not see whole panoramas; an odometry
+            output that is missing, unreadable, unfinished or made with other settings (naming them).
+    """
+    opt = settings or OdometrySettings()
+    if odometry is None:
+        opt = replace(opt, save_depth_maps=True)
+    job = resolve_job(input, checkpoint, work if odometry is None else odometry, opt)
+    if job.predictor.fov < 360:
         raise CylsfmError(
-            f"{checkpoint}: the model sees {predictor.fov:g}-degree crops; exporting a ride needs 360"
+            f"{checkpoint}: the model sees {job.predictor.fov:g}-degree crops; exporting a ride needs 360"
         )
-    plan = ride_plan(ride, predictor, opt.camera)
-    net_cam = plan.network_input.resized(*predictor.size)
-    mask_file = ride_mask(ride, opt.mask)
-    mask = (
-        None if mask_file is None else network_mask(mask_file, ride.size, plan, predictor.size)[0, 0].numpy()
-    )
-    pose_of = dict(zip(result.frames, result.c2w, strict=True))
+    if odometry is not None:
+        return _given(job)
+    result = run_job(job)
+    return RidePoses(job, result.c2w, result.unit, result.metres_per_unit, result.depth)
 
-    def frames() -> Iterator[_Frame]:
-        for index, stem, when, rgb in ride.read():
-            depth = load_depth(work / "depth" / f"{stem}.npy")
-            yield _Frame(index, stem, when, rgb, plan.camera, pose_of[stem], depth, net_cam, mask)
 
-    return result.unit, frames(), (predictor, plan)
+def _given(job: Job) -> RidePoses:
+    """The poses of the odometry output ``job.out``, made with ``job``'s settings."""
+    path = job.out / SUMMARY_FILE
+    try:
+        summary = json.loads(path.read_text())
+        recorded, settings = summary["fingerprint"], summary["settings"]
+    except FileNotFoundError:
+        raise CylsfmError(f"{path}: not found; give a finished output of cylsfm odometry") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CylsfmError(f"{path}: not a summary of cylsfm odometry ({exc})") from None
+    if recorded != job.fingerprint:
+        mine = job.identity
+        differ = sorted(k for k in set(mine) | set(settings) if mine.get(k) != settings.get(k))
+        shown = "; ".join(f"{k}: {settings.get(k)!r} there, {mine.get(k)!r} here" for k in differ[:4])
+        raise CylsfmError(
+            f"{job.out}: that odometry was made with other settings ({shown}); give the same input, "
+            "checkpoint and options, or leave --odometry out to run it again"
+        )
+    _, c2w = read_tum(job.out / "trajectory.txt")
+    depth = job.out / "depth" if summary.get("depth_maps") else None
+    return RidePoses(job, c2w, str(summary["unit"]), summary.get("metres_per_unit"), depth)
 
 
 def export_colmap(
     input: str | os.PathLike[str],
-    checkpoint: str | os.PathLike[str],
+    checkpoint: str | os.PathLike[str] | Predictor,
     out: str | os.PathLike[str],
     settings: OdometrySettings | None = None,
     views: ViewOptions | None = None,
+    odometry: str | os.PathLike[str] | None = None,
 ) -> dict[str, Any]:
     """The ride ``input`` (a video, a folder of frames or a dataset sequence) as a COLMAP model in ``out``.
 
-    Runs :func:`cylsfm.odometry` with ``settings`` (and every frame's depth) into ``OUT/odometry`` (a run
-    already there with the same settings is reused, a killed one continued), then writes ``OUT/images/``,
-    ``OUT/sparse/0/``, ``OUT/transforms.json`` and ``OUT/sparse_pc.ply`` from the ride's frames, its
-    trajectory and the depth (metres with ``settings.camera_height``, else the network's units: the same
-    unit as the trajectory). Returns a summary (``panoramas``, ``images``, ``points``, ``unit``).
+    The poses are those of the odometry run ``odometry`` (made with the same settings), else of one run
+    with ``settings`` (and every frame's depth) into ``OUT/odometry`` (a run already there with the same
+    settings is reused, a killed one continued). Writes ``OUT/images/``, ``OUT/sparse/0/``,
+    ``OUT/transforms.json`` and ``OUT/sparse_pc.ply`` from the ride's frames, its trajectory and the depth
+    (metres with ``settings.camera_height``, else the network's units: the same unit as the trajectory).
+    Returns a summary (``panoramas``, ``images``, ``points``, ``unit``).
 
     Raises:
-        CylsfmError: as :func:`cylsfm.odometry`; a model that does not see whole panoramas; pycolmap
-            missing.
+        CylsfmError: as :func:`ride_poses`; pycolmap missing.
     """
     out = Path(out)
     writer = ColmapWriter(out, views)
-    unit, frames, _ = _ride(input, checkpoint, out / "odometry", settings)
-    for f in frames:
+    ride = ride_poses(input, checkpoint, out / "odometry", settings, odometry)
+    for f in ride.frames():
         writer.add(f.name, f.rgb, f.camera, f.c2w, f.depth, f.depth_camera, f.mask)
-    return {**writer.finish(), "unit": unit}
+    return {**writer.finish(), "unit": ride.unit}
 
 
 def export_rerun(
     input: str | os.PathLike[str],
-    checkpoint: str | os.PathLike[str],
+    checkpoint: str | os.PathLike[str] | Predictor,
     out: str | os.PathLike[str],
     settings: OdometrySettings | None = None,
     points_per_frame: int = 4000,
+    odometry: str | os.PathLike[str] | None = None,
 ) -> dict[str, Any]:
-    """The ride ``input`` as a rerun recording ``out`` (``.rrd``; the odometry, with every frame's depth,
-    in ``OUT.odometry/`` beside it, reused as by :func:`export_colmap`). Returns ``{"frames", "unit",
-    "path"}``.
+    """The ride ``input`` as a rerun recording ``out`` (``.rrd``), posed by the odometry run ``odometry``,
+    else by one run (with every frame's depth) into ``OUT.odometry/`` beside it, reused as by
+    :func:`export_colmap`. Returns ``{"frames", "unit", "path"}``.
 
     Raises:
-        CylsfmError: as :func:`cylsfm.odometry`; a model that does not see whole panoramas; rerun-sdk
-            missing.
+        CylsfmError: as :func:`ride_poses`; rerun-sdk missing.
     """
     from ..export.rerun import RerunWriter
 
     out = Path(out)
-    unit, frames, (predictor, plan) = _ride(
-        input, checkpoint, out.with_name(out.name + ".odometry"), settings
-    )
-    writer = RerunWriter(out, points_per_frame, unit)
+    ride = ride_poses(input, checkpoint, out.with_name(out.name + ".odometry"), settings, odometry)
+    writer = RerunWriter(out, points_per_frame, ride.unit)
     n = 0
     try:
-        for f in frames:
-            with torch.inference_mode():
-                small = network_size(network_images([f.rgb], plan, predictor.device), predictor.size)
-            colours = (small[0].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().cpu().numpy()
+        for f in ride.frames():
+            colours = (f.small.permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
             writer.add(f.index, f.time, f.rgb, f.c2w, f.depth, f.depth_camera, colours, f.mask)
             n += 1
         path = writer.finish()
     except BaseException:
         writer.abort()
         raise
-    return {"frames": n, "unit": unit, "path": str(path)}
+    return {"frames": n, "unit": ride.unit, "path": str(path)}

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -25,7 +26,7 @@ from ..geometry import Camera, compass_yaw, yaw_matrix
 from ..geometry.align import AlignConfig, align
 from ..geometry.photometric import half_size, photometric_costs
 
-__all__ = ["DIRECTIONS", "Mount", "mount_yaw"]
+__all__ = ["DIRECTIONS", "MOUNT_AGREEMENT", "STRAIGHT_AHEAD_DEG", "Mount", "mount_summary", "mount_yaw"]
 
 #: Starting directions of travel tried per pair, evenly around the circle.
 DIRECTIONS = 8
@@ -33,6 +34,12 @@ DIRECTIONS = 8
 GAP = 3
 #: Pairs aligned at most.
 PAIRS = 12
+#: The direction of travel found is used when at least this weighted fraction of the pairs agree with it.
+MOUNT_AGREEMENT = 0.5
+#: A direction of travel found within this many degrees of straight ahead leaves the frames as they are
+#: (the network reads them as trained: a camera facing its motion); turning them by a column or two
+#: changed no result (RESULTS.md) and would cost the search's windows, read again turned.
+STRAIGHT_AHEAD_DEG = 2.0
 
 
 @dataclass(frozen=True)
@@ -143,3 +150,25 @@ def mount_yaw(
     close = (torch.remainder(heading - yaw + math.pi, 2 * math.pi) - math.pi).abs() < math.radians(30)
     agreement = float((weight * close).sum() / weight.sum().clamp(min=1e-12))
     return Mount(yaw, agreement, len(first))
+
+
+def mount_summary(given: float | None, found: tuple[float, float, int]) -> dict[str, Any] | None:
+    """The direction of travel the pose network was turned to, as ``odometry.json`` says it (``None``: the
+    frames as they are).
+
+    Args:
+        given: the direction given by the user (radians), or ``None``.
+        found: ``(yaw in radians, agreement, pairs)`` as the tracker found it (yaw ``nan``: not found).
+    """
+    if given is not None:
+        return {"yaw_deg": math.degrees(given), "agreement": None, "pairs": 0, "how": "given"}
+    yaw, agreement, pairs = found
+    if not math.isfinite(yaw):
+        return None
+    if math.isfinite(agreement) and yaw == 0.0 and agreement < MOUNT_AGREEMENT:
+        how = f"not found: {pairs} pairs of frames disagree ({agreement:.0%} agree); taken as straight ahead"
+    else:
+        how = f"found in {pairs} pairs of frames, {agreement:.0%} agree"
+        if abs(math.degrees(yaw)) < STRAIGHT_AHEAD_DEG:
+            how += f"; within {STRAIGHT_AHEAD_DEG:g} degrees of straight ahead, the frames not turned"
+    return {"yaw_deg": math.degrees(yaw), "agreement": agreement, "pairs": pairs, "how": how}

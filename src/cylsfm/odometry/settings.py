@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from ..errors import InputError
 from ..geometry import Camera
 from ..geometry.align import AlignConfig
-from .loops import LoopSettings
+from .loops.settings import LoopSettings
 
 __all__ = ["LOOP_MIN_FRAMES", "OdometrySettings"]
 
@@ -51,7 +51,7 @@ class OdometrySettings:
             camera, a helmet or a mount (black), in the frames' own geometry; the compass, the refinement
             and the search for the direction of travel leave the occluder out. ``None``: a dataset
             sequence's own ``mask.png`` when it has one; ``False``: every pixel.
-        loops: close loops (:mod:`~cylsfm.odometry.loops`, :mod:`~cylsfm.odometry.posegraph`): ``True``,
+        loops: close loops (:mod:`~cylsfm.odometry.loops`): ``True``,
             ``False``, or ``"auto"``: when the ride has at least :data:`LOOP_MIN_FRAMES` frames and the
             model reads full panoramas.
         loop: how loops are looked for and accepted.

@@ -2,9 +2,11 @@
 
 The state is one ``.npz`` file (NumPy arrays only, read with ``allow_pickle=False``) written atomically
 after every chunk of frames: the network's windows and steps, the refined steps, the per-frame ground
-heights, and the last few frames and depths that the next steps still need. It carries a fingerprint of
-everything that changes the result (input, checkpoint, options); a state with another fingerprint is
-not continued, the run starts over.
+heights, the direction of travel found, the place descriptors, the last few frames and depths that the
+next steps still need, and the verified loops. It holds progress only, never a setting; it carries the
+fingerprint of everything that changes that progress (input, checkpoint, options: the run's
+:class:`~cylsfm.odometry.job.Job`), and a state with another fingerprint is not continued: the run starts
+over.
 """
 
 from __future__ import annotations
@@ -17,13 +19,13 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write_bytes
+from .loops.loop import Loop
+from .loops.store import loops_from_arrays, loops_to_arrays
 
-__all__ = ["LOOP_COLUMNS", "STATE_FILE", "State"]
+__all__ = ["STATE_FILE", "State"]
 
 #: The state's file name in the output directory.
 STATE_FILE = ".odometry-state.npz"
-#: Numbers a verified loop's row in the state holds (:func:`cylsfm.odometry.loops.loop_rows`).
-LOOP_COLUMNS = 24
 
 
 def _stack(rows: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
@@ -50,19 +52,18 @@ class State:
     tail_images: list[np.ndarray] = field(default_factory=list)
     tail_depths: list[np.ndarray] = field(default_factory=list)
     finished: bool = False
-    rescaled: int = 0  # 1: the depth files in metres are all written
+    #: the depth files in metres are all written
+    rescaled: bool = False
     #: each frame's place descriptor (:func:`~cylsfm.geometry.place.place_descriptor`) and median depth
     places: list[np.ndarray] = field(default_factory=list)
     reach: list[float] = field(default_factory=list)
-    #: the loops verified at the end (:data:`LOOP_COLUMNS` numbers a row) and why each was not accepted; ``None``:
-    #: not looked for yet
-    loops: np.ndarray | None = None
-    loop_why: list[str] = field(default_factory=list)
+    #: the loops verified at the end, accepted or not; ``None``: not looked for yet
+    loops: list[Loop] | None = None
     #: the fingerprint of the loop settings the loops were found with: other settings look again (the
     #: tracking, which they do not change, is kept)
     loop_key: str = ""
-    #: the direction of travel in the panorama (radians; nan: not known yet) and how it was found:
-    #: ``(agreement, pairs)`` of :func:`~cylsfm.odometry.mount.mount_yaw` (nan, 0: given or none)
+    #: the direction of travel in the panorama found from the frames (radians; nan: not found, or not
+    #: looked for) and how: ``(agreement, pairs)`` of :func:`~cylsfm.odometry.mount.mount_yaw`
     mount: tuple[float, float, int] = (float("nan"), float("nan"), 0)
 
     @property
@@ -89,25 +90,25 @@ class State:
             "mount": np.array(self.mount, dtype=np.float64),
             "places": _stack(self.places, (0,)).astype(np.float32),
             "reach": np.array(self.reach, dtype=np.float64),
-            "loops": np.zeros((0, LOOP_COLUMNS)) if self.loops is None else self.loops,
             "loops_done": np.array(self.loops is not None),
-            "loop_why": np.array(self.loop_why, dtype=str),
             "loop_key": np.array(self.loop_key),
+            **{f"loopdata_{k}": v for k, v in loops_to_arrays(self.loops or []).items()},
         }
         buf = io.BytesIO()
         np.savez(buf, **arrays)
         atomic_write_bytes(path, buf.getvalue())
 
     @classmethod
-    def load(cls, path: Path, key: str) -> State | None:
-        """The saved state at ``path`` when it exists, reads, and has fingerprint ``key``; else ``None``."""
+    def load(cls, path: Path, key: str | None) -> State | None:
+        """The saved state at ``path`` when it exists, reads, and has fingerprint ``key`` (``None``: any);
+        else ``None``."""
         if not path.is_file():
             return None
         try:
             with np.load(path, allow_pickle=False) as z:
-                if str(z["key"]) != key:
+                if key is not None and str(z["key"]) != key:
                     return None
-                state = cls(key)
+                state = cls(str(z["key"]))
                 state.stems = [str(s) for s in z["stems"]]
                 state.times = [float(t) for t in z["times"]]
                 state.heights = [float(h) for h in z["heights"]]
@@ -115,16 +116,16 @@ class State:
                     setattr(state, name, list(z[name]))
                 state.tail_index = [int(i) for i in z["tail_index"]]
                 state.finished = bool(z["finished"])
-                state.rescaled = int(z["rescaled"])
+                state.rescaled = bool(z["rescaled"])
                 yaw, agreement, pairs = (float(v) for v in z["mount"])
                 state.mount = (yaw, agreement, int(pairs))
                 state.places = list(z["places"])
                 state.reach = [float(r) for r in z["reach"]]
-                state.loops = np.asarray(z["loops"], dtype=np.float64) if bool(z["loops_done"]) else None
-                state.loop_why = [str(w) for w in z["loop_why"]]
+                if bool(z["loops_done"]):
+                    state.loops = loops_from_arrays(
+                        {k[9:]: z[k] for k in z.files if k.startswith("loopdata_")}
+                    )
                 state.loop_key = str(z["loop_key"])
-                if state.loops is not None and state.loops.shape[1:] != (LOOP_COLUMNS,):
-                    return None
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             return None  # unreadable (empty, cut off, not an archive) or from another version: start over
         return state

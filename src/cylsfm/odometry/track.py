@@ -1,8 +1,9 @@
-"""The frame-by-frame work of :func:`cylsfm.odometry`: depth for every frame, the pose network over every
+"""The first stage of :func:`cylsfm.odometry`, tracking: depth for every frame, the pose network over every
 window, each consecutive step from its window, the visual compass's yaw, and the refinement.
 
-Frames arrive in chunks (:meth:`Tracker.push`); the tracker keeps only the few frames the next steps
-still need, and records everything in a :class:`~cylsfm.odometry.state.State`, so that a run can stop
+:func:`track` reads the ride in chunks and pushes them through a :class:`Tracker`
+(:meth:`Tracker.push`); the tracker keeps only the few frames the next steps still need, and records
+everything in a :class:`~cylsfm.odometry.state.State`, saved after each chunk, so that a run can stop
 after any chunk and continue from it.
 """
 
@@ -12,31 +13,32 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ShapeError
+from ..errors import CylsfmError, ShapeError
 from ..evaluate.pose_metrics import step_from_window, window_centre
 from ..geometry import Camera, compass_yaw, invert, yaw_matrix
 from ..geometry.align import AlignConfig, align
 from ..geometry.ground import ground_height
 from ..geometry.place import place_descriptor
 from ..model import Predictor
-from .mount import mount_yaw
-from .state import State
+from ..runtime import progress_bar
+from .depth import RAW_DEPTH, DepthSource, depth_writer
+from .mount import MOUNT_AGREEMENT, STRAIGHT_AHEAD_DEG, mount_yaw
+from .state import STATE_FILE, State
 
-__all__ = ["Timings", "TrackOptions", "Tracker"]
+if TYPE_CHECKING:
+    from .job import Job
 
-#: The direction of travel found is used when at least this weighted fraction of the pairs agree with it.
-MOUNT_AGREEMENT = 0.5
-#: A direction of travel found within this many degrees of straight ahead leaves the frames as they are
-#: (the network reads them as trained: a camera facing its motion); turning them by a column or two
-#: changed no result (RESULTS.md) and would cost the search's windows, read again turned.
-STRAIGHT_AHEAD_DEG = 2.0
-#: ``(indices, network-size images [B,3,H,W], view depths [B,1,h,w])`` -> written depth files.
+__all__ = ["CHUNK", "Timings", "TrackOptions", "Tracked", "Tracker", "keyframe_steps", "track"]
+
+#: Frames read and processed between two saves of the state.
+CHUNK = 32
+#: ``(indices, view depths [B,1,h,w])`` -> written depth files.
 DepthSink = Callable[[list[int], Tensor], None]
 
 
@@ -68,6 +70,8 @@ class TrackOptions:
             so that the camera faces its motion (full panoramas only).
         places: record every frame's place descriptor and median depth (for loop closure; full
             panoramas only).
+        mount_yaw: the direction of travel in the panorama, given (radians): the pose network reads every
+            window turned so that the camera faces it; ``None``: found (``find_mount``) or none.
     """
 
     refine: bool = False
@@ -77,6 +81,7 @@ class TrackOptions:
     need_depth: bool = True
     find_mount: bool = False
     places: bool = False
+    mount_yaw: float | None = None
 
 
 class Tracker:
@@ -87,8 +92,7 @@ class Tracker:
         camera: the camera of the network-size frames given to :meth:`push` (``predictor.size``).
         state: where the results go (a new or a loaded state).
         options: what to compute.
-        depth_of: ground-truth depth for frames by index (``[1,h,w]`` at the view's size), or ``None``
-            for the network's depth.
+        depth: every frame's depth (the network's, or ground truth); ``None``: the network's.
         on_depth: called with each chunk's indices and view depths (to write depth files).
         mask: ``[1,1,H,W]`` at the network's size (``predictor.size``): 1 where the scene is seen, 0 on an
             occluder fixed to the camera (a helmet, a mount), which the compass, the refinement and the
@@ -102,7 +106,7 @@ class Tracker:
         camera: Camera,
         state: State,
         options: TrackOptions,
-        depth_of: Callable[[int], Tensor] | None = None,
+        depth: DepthSource | None = None,
         on_depth: DepthSink | None = None,
         mask: Tensor | None = None,
     ) -> None:
@@ -116,8 +120,8 @@ class Tracker:
         self.batch = options.batch_size
         self.every = options.keyframe_every
         self.need_depth = options.need_depth or options.refine or on_depth is not None
-        self.depth_of = depth_of
         self.on_depth = on_depth
+        self.given_mount = options.mount_yaw
         self.find_mount = options.find_mount and self.view.wraps
         self.places = options.places and self.view.wraps
         self.k = (int(predictor.window_length) - 1) // 2
@@ -126,6 +130,8 @@ class Tracker:
             raise ShapeError(f"mask must be [1,1,{h},{w}] (the network's size), got {tuple(mask.shape)}")
         self.mask = None if mask is None else mask.float().cpu()
         self.masked = {"mask": self.mask} if self.mask is not None else {}  # for the networks
+        self.depth = depth if depth is not None else DepthSource(predictor, camera, self.mask)
+        #: seconds spent in each part of the tracker's own work
         self.times = Timings()
         self.images: dict[int, Tensor] = {}
         self.depths: dict[int, Tensor] = {}
@@ -155,7 +161,7 @@ class Tracker:
             else:
                 self.state.reach += [float("nan")] * len(indices)
             t = self.times.add("place descriptors", t)
-        if self.find_mount and not math.isfinite(self.state.mount[0]):
+        if self.find_mount and self.given_mount is None and not math.isfinite(self.state.mount[0]):
             self._mount(indices, images, depth if self.need_depth else None)
             t = self.times.add("direction of travel", t)
         for i, im, d in zip(indices, images.cpu(), depth.cpu(), strict=True):
@@ -175,10 +181,13 @@ class Tracker:
     def roll(self) -> int:
         """Columns (of the network's input) by which the pose network's frames are turned: the direction
         of travel straight ahead (0 while it is not known, and when found within ``STRAIGHT_AHEAD_DEG``
-        of it)."""
-        yaw, _, found = self.state.mount
-        if not math.isfinite(yaw) or (found and abs(math.degrees(yaw)) < STRAIGHT_AHEAD_DEG):
-            return 0
+        of it; a direction given is used as it is)."""
+        if self.given_mount is not None:
+            yaw = self.given_mount
+        else:
+            yaw = self.state.mount[0]
+            if not math.isfinite(yaw) or abs(math.degrees(yaw)) < STRAIGHT_AHEAD_DEG:
+                return 0
         return round(-yaw * self.p.size[0] / (2 * math.pi)) % self.p.size[0]
 
     def _mount(self, indices: list[int], images: Tensor, depth: Tensor | None) -> None:
@@ -204,16 +213,13 @@ class Tracker:
             self.state.windows += list(rel.double().cpu().numpy())
 
     def _depth(self, indices: list[int], images: Tensor) -> Tensor:
-        if self.depth_of is not None:
-            return torch.stack([self.depth_of(i) for i in indices])
-        with torch.inference_mode():
-            return self.p.depth(images, self.camera, **self.masked).float().clone()
+        return self.depth(indices, images)
 
     @property
     def _passes_take_depth(self) -> bool:
         """Whether the depth the tracker predicts (the network's, not ground truth) serves the pose
         network's further passes (there are some)."""
-        return self.depth_of is None and self.p.pose_iterations > 0
+        return not self.depth.truth and self.p.pose_iterations > 0
 
     @property
     def _own_depth(self) -> bool:
@@ -240,24 +246,6 @@ class Tracker:
 
     def _view_mask(self) -> Tensor | None:
         return None if self.mask is None else self._view(self.mask)
-
-    def view_of(self, images: Tensor) -> Tensor:
-        """Network-size images ``[...,H,W]`` -> the part the networks see (all of a full panorama)."""
-        return self._view(images)
-
-    def view_mask(self) -> Tensor | None:
-        """The mask ``[1,1,h,w]`` of what the networks see (``None``: none)."""
-        return self._view_mask()
-
-    def depths_of(self, indices: list[int], images: dict[int, Tensor]) -> dict[int, Tensor]:
-        """The depth ``[1,h,w]`` of frames ``indices`` from their network-size images (``[3,H,W]``; the
-        ground truth's when the tracker reads it), in batches."""
-        out: dict[int, Tensor] = {}
-        for n in range(0, len(indices), self.batch):
-            chunk = indices[n : n + self.batch]
-            depth = self._depth(chunk, torch.stack([images[i] for i in chunk]).to(self.p.device))
-            out.update(zip(chunk, self._view(depth).cpu(), strict=True))
-        return out
 
     def _steps(self, ready: Callable[[int], bool], m: int) -> None:
         """Every step ``j`` not yet done for which ``ready(j)``, on a chain of ``m`` frames (so far)."""
@@ -331,11 +319,9 @@ class Tracker:
     def _rescaled(self, targets: list[int], net: Tensor) -> Tensor:
         """The network's poses from ``targets`` with their translation in the unit of the depth used: the
         same unit, unless the depth is ground truth (then scaled by the ratio of the median depths)."""
-        if self.depth_of is None:
+        if not self.depth.truth:
             return net
-        with torch.inference_mode():
-            own = self.p.depth(torch.stack([self.images[j] for j in targets]), self.camera, **self.masked)
-            own = own.float()
+        own = self.depth.network(torch.stack([self.images[j] for j in targets]))
         out = net.clone()
         for b, j in enumerate(targets):
             gt = self.depths[j]
@@ -357,14 +343,6 @@ class Tracker:
         st.tail_depths = [self.depths[i].numpy() for i in st.tail_index]
 
 
-def network_size(images: Tensor, size: tuple[int, int]) -> Tensor:
-    """``[B,3,H,W]`` -> the network's size ``(W, H)`` by area averaging (as the predictor resizes)."""
-    w, h = size
-    if images.shape[-2:] == (h, w):
-        return images
-    return F.interpolate(images, size=(h, w), mode="area")
-
-
 def keyframe_steps(rel: np.ndarray, every: int) -> np.ndarray:
     """Consecutive steps ``T_{j->j+1}`` ``[M-1,4,4]`` from keyframe-relative poses ``rel[j] = T_{K->j+1}``
     (``K = j - j % every``): ``T_{K->j+1} inv(T_{K->j})`` within a keyframe's frames."""
@@ -373,3 +351,91 @@ def keyframe_steps(rel: np.ndarray, every: int) -> np.ndarray:
         if j % every:
             out[j] = rel[j] @ invert(rel[j - 1])
     return out
+
+
+@dataclass
+class Tracked:
+    """What tracking a ride gave (the rest is in the state).
+
+    Attributes:
+        steps: the consecutive steps ``T_{j->j+1}`` ``[M-1,4,4]``: the refined ones (with ``refine``),
+            else the pose network's.
+        timings: seconds per part of the work.
+    """
+
+    steps: np.ndarray
+    timings: dict[str, float]
+
+
+def track(job: Job, state: State) -> Tracked:
+    """The tracking stage: read the ride in chunks (from where ``state`` left it), push them through a
+    :class:`Tracker`, save the state after each; then the ride's last steps.
+
+    Raises:
+        CylsfmError: a ride too short for the pose network's window, or a frame that cannot be read.
+    """
+    opt, dest = job.settings, job.out
+    writer = None
+    if opt.save_depth_maps:
+        writer = depth_writer(dest / (RAW_DEPTH if opt.camera_height else "depth"), state.stems)
+    options = TrackOptions(
+        refine=opt.refine,
+        align=opt.align,
+        batch_size=opt.batch_size,
+        keyframe_every=opt.keyframe_every,
+        need_depth=opt.camera_height is not None or opt.steady_height,
+        find_mount=job.find_mount,
+        places=job.places,
+        mount_yaw=job.mount_yaw,
+    )
+    tracker = Tracker(job.predictor, job.camera, state, options, job.depth, writer, job.mask)
+    times = Timings()
+    if not state.finished:
+        _read(job, tracker, state, times)
+    refined = keyframe_steps(np.stack(state.refined), opt.keyframe_every) if opt.refine else None
+    steps = refined if refined is not None else np.stack(state.net)
+    return Tracked(steps, {**times.parts, **tracker.times.parts})
+
+
+def _read(job: Job, tracker: Tracker, state: State, times: Timings) -> None:
+    """Read the ride's frames from ``state.next_frame`` on, in chunks of :data:`CHUNK` frames."""
+    ride, path = job.ride, job.out / STATE_FILE
+    bar = progress_bar(
+        total=ride.frames or None, desc="odometry", unit="frame", enabled=job.settings.progress, leave=True
+    )
+    bar.update(state.next_frame)
+    chunk: list[tuple[int, np.ndarray]] = []
+
+    def flush() -> None:
+        t = time.perf_counter()
+        images = job.images([rgb for _, rgb in chunk])
+        times.add("frames to the network's size", t)
+        tracker.push([i for i, _ in chunk], images)
+        state.save(path)
+        bar.update(len(chunk))
+        chunk.clear()
+
+    t = time.perf_counter()
+    try:
+        for i, stem, when, rgb in ride.read(start=state.next_frame):
+            if i < state.next_frame:
+                continue
+            if rgb is None:  # pragma: no cover - read() decodes every frame from start on
+                raise CylsfmError(f"{ride.path}: frame {stem} was not decoded")
+            state.stems.append(stem)
+            state.times.append(when)
+            chunk.append((i, rgb))
+            t = times.add("decoding", t)
+            if len(chunk) >= CHUNK:
+                flush()
+            t = time.perf_counter()
+        if chunk:
+            flush()
+    finally:
+        bar.close()
+    m, need = state.next_frame, job.predictor.window_length
+    if m < need:
+        raise CylsfmError(f"{ride.path}: {m} frames; a trajectory needs at least {need}")
+    tracker.finish(m)
+    state.finished = True
+    state.save(path)

@@ -1,4 +1,4 @@
-"""Loop closure, part two: the whole ride's poses optimised together with the loops (GTSAM).
+"""Loop closure, the pose graph: the whole ride's poses optimised together with the loops (GTSAM).
 
 Every frame is a node, a similarity transform ``X_j`` (rotation, position and scale: a point ``p`` of
 frame ``j``, in that frame's depth unit, is at ``s_j (R_j p + t_j)`` in the world), so that the
@@ -24,11 +24,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..evaluate.pose_metrics import chain_poses
-from ..geometry import invert
-from .loops import Loop
+from ...evaluate.pose_metrics import chain_poses
+from ...geometry import invert
+from .loop import Loop
 
-__all__ = ["GraphSettings", "close_loops"]
+__all__ = ["GraphSettings", "close_loops", "closed_steps"]
 
 
 @dataclass(frozen=True)
@@ -113,14 +113,7 @@ def _graph(
         ),
     )
     for lp in loops:
-        # X_i^-1 X_j maps frame j's points (j's unit) to frame i's: p_i = (1/ratio)(R^T p_j - ratio R^T t)
-        rot_t = lp.pose[:3, :3].T
-        rel = np.eye(4)
-        rel[:3, :3] = rot_t
-        rel[:3, 3] = -lp.ratio * rot_t @ lp.pose[:3, 3]
-        graph.add(
-            gtsam.BetweenFactorSimilarity3(lp.i, lp.j, _similarity(gtsam, rel, 1.0 / lp.ratio), loop_noise)
-        )
+        graph.add(gtsam.BetweenFactorSimilarity3(lp.i, lp.j, _loop_measure(gtsam, lp), loop_noise))
     return graph
 
 
@@ -175,3 +168,12 @@ def close_loops(
         c2w[j, :3, 3] = x.scale() * np.asarray(x.translation())
         scales[j] = x.scale()
     return c2w, scales
+
+
+def closed_steps(steps: np.ndarray, loops: list[Loop] | None) -> np.ndarray | None:
+    """The steps ``[M-1,4,4]`` of the ride closed by its accepted loops (:func:`close_loops`), or ``None``
+    when none was accepted."""
+    if not any(lp.accepted for lp in loops or []):
+        return None
+    c2w, _ = close_loops(steps, list(loops or []))
+    return np.stack([invert(c2w[j + 1]) @ c2w[j] for j in range(len(c2w) - 1)])

@@ -29,17 +29,44 @@ def _train(net: nn.Module, opt: torch.optim.Optimizer, steps: int) -> None:
 
 @pytest.mark.parametrize("fused", [True, False])
 def test_same_updates_as_torch_adam(fused):
+    """The project's fused Adam against torch's: its fused Adam (which copies channels-last tensors: the
+    same arithmetic, the same results) and, ``fused=False``, its reference for-loop implementation (the
+    same update to rounding)."""
     ours, theirs = _net(), _net()
     assert any(p.dim() == 4 and not p.is_contiguous() for p in ours.parameters())
-    opt = Adam(ours.parameters(), lr=1e-2, weight_decay=1e-4, fused=fused)
+    opt = Adam(ours.parameters(), lr=1e-2, weight_decay=1e-4, fused=True)
+    ref = torch.optim.Adam(theirs.parameters(), lr=1e-2, weight_decay=1e-4, fused=fused, foreach=False)
     _train(ours, opt, 4)
-    _train(theirs, torch.optim.Adam(theirs.parameters(), lr=1e-2, weight_decay=1e-4, fused=fused), 4)
+    _train(theirs, ref, 4)
+    tolerance = {"rtol": 0, "atol": 1e-7} if fused else {"rtol": 1e-6, "atol": 1e-7}
     for a, b in zip(ours.parameters(), theirs.parameters(), strict=True):
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-7)
+        torch.testing.assert_close(a, b, **tolerance)
         assert a.stride() == b.stride()  # the parameters keep their shape and memory format
         state = opt.state[a]
         assert state["exp_avg"].shape == a.shape and state["exp_avg"].stride() == a.stride()
+        torch.testing.assert_close(state["exp_avg_sq"], ref.state[b]["exp_avg_sq"], **tolerance)
         assert a.grad.shape == a.shape
+
+
+def test_the_fused_update_reads_parameters_in_place(monkeypatch):
+    """The fused kernel gets every tensor contiguous (nothing for it to copy) while the parameters keep
+    their own shape and memory, during the step too: none is reshaped or replaced."""
+    net = _net()
+    params = list(net.parameters())
+    layout = [(p.shape, p.stride(), p.data_ptr()) for p in params]
+    opt = Adam(params, lr=1e-2, fused=True)
+    seen = []
+    kernel = torch._fused_adam_
+
+    def checked(*args, **kwargs):
+        assert [(p.shape, p.stride(), p.data_ptr()) for p in params] == layout
+        seen.extend(t for tensors in args[:4] for t in tensors)
+        return kernel(*args, **kwargs)
+
+    monkeypatch.setattr(torch, "_fused_adam_", checked)
+    _train(net, opt, 2)
+    assert len(seen) == 2 * 4 * len(params) and all(t.is_contiguous() for t in seen)
+    assert [(p.shape, p.stride(), p.data_ptr()) for p in params] == layout
 
 
 def test_state_dict_is_torch_adams_both_ways():

@@ -2,10 +2,8 @@
 
 On the CPU, an eager ``F.conv2d`` hands oneDNN the weights in PyTorch's layout, and oneDNN lays them out
 again in its blocked layout at every call. On the networks' deepest layers (weights of up to
-``512 x 1024 x 3 x 3`` on maps of a few positions) that copy costs more than the arithmetic: measured on
-an Intel Xeon with AMX, 512x128, batch 1, bf16, a ``1024 -> 512`` convolution on a ``4 x 10`` map takes
-1.43 ms eager and 0.40 ms with its weights laid out beforehand, the ``512 -> 512`` up-convolution on a
-``1 x 6`` map 1.35 against 0.12 ms (fp32: 2.35 / 1.11 ms and 0.92 / 0.24 ms).
+``512 x 1024 x 3 x 3`` on maps of a few positions) that copy costs more than the arithmetic, several times
+more on the smallest maps, in bf16 and in fp32 alike (BENCHMARKS.md links the measurements, layer by layer).
 
 At inference the weights do not change, so each wrap-aware layer keeps a :class:`PackedWeights`: its
 weight in oneDNN's layout, made once for each input shape and dropped when the weight changes (a new

@@ -218,7 +218,8 @@ class Trainer:
             len(self.dataset), seed=self.cfg.seed, rank=self.dist.rank, world=self.dist.world, start=consumed
         )
         workers = self.cfg.data.workers
-        if workers is None:  # auto: frames decoded once cost the step ~1% on the main process (CPU)
+        if workers is None:  # auto: frames decoded once cost the step little on the main process (CPU;
+            # BENCHMARKS.md)
             cached = getattr(self.dataset, "frame_cache", None) is not None
             workers = 0 if cached and self.device.type == "cpu" else 2
         return torch.utils.data.DataLoader(

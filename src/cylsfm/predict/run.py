@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -31,6 +31,8 @@ from ..runtime import file_id, fingerprint, progress_bar
 from .scale import RideScale, network_depth, ride_scale
 
 __all__ = ["PredictSummary", "RideScale", "predict", "ride_scale"]
+
+log = logging.getLogger(__name__)
 
 
 #: The settings of the outputs in ``OUT``: a run with the same settings continues where one stopped.
@@ -172,7 +174,7 @@ class _Plans:
             plan = plan_input(source.path, size, self.predictor, self.vfov_h, self.camera, self.camera_path)
             self.plans[key] = plan
             if plan.note:
-                print(f"{source.path}: {plan.note}", file=sys.stderr)
+                log.info("%s: %s", source.path, plan.note)
         return self.plans[key]
 
     def mask(self, source: InputSource, size: tuple[int, int]) -> torch.Tensor | None:
@@ -296,10 +298,10 @@ def _scale_of(
     height: float | None,
     out: Path,
 ) -> RideScale:
-    """The input's one scale (:func:`ride_scale`), said on stderr and in ``OUT/NAME/scale.json``."""
+    """The input's one scale (:func:`ride_scale`), said in the log (on the terminal from the command line) and in ``OUT/NAME/scale.json``."""
     scale = ride_scale(source, plans, predictor, fps, height)
     _write_if_changed(out / source.name / "scale.json", json.dumps(scale.to_dict(), indent=1) + "\n")
-    print(f"{source.name}: {scale.note}", file=sys.stderr)
+    log.info("%s: %s", source.name, scale.note)
     return scale
 
 

@@ -34,6 +34,7 @@ class SnippetIndex:
         owners: ``int64 [N]``, the index in ``sequences`` of each snippet's sequence.
         skip_bad: whether bad frames were skipped (with a warning) rather than refused; a dataset of this
             index then also replaces a sample whose frame fails to decode by the next loadable one.
+        used: the indices of the sequences that hold a snippet, in order (made from ``owners``).
     """
 
     root: Path

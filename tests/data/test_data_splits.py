@@ -2,7 +2,16 @@ import numpy as np
 import pytest
 
 from cylsfm import CylindricalCamera
-from cylsfm.data import DatasetError, SequenceDataset, SequenceWriter, build_index, make_splits, read_split
+from cylsfm.data import (
+    DatasetError,
+    SequenceDataset,
+    SequenceWriter,
+    build_index,
+    make_splits,
+    read_split,
+    scan_dataset,
+)
+from cylsfm.data.splits import split_targets
 from cylsfm.errors import InputError
 
 W, H = 32, 8
@@ -123,6 +132,13 @@ def test_dataset_with_split_files(tmp_path):
         SequenceDataset(build_index(tmp_path, split="train"))
     make_splits(tmp_path, name="x", fractions=(1.0, 0.0, 0.0))
     assert len(SequenceDataset(build_index(tmp_path, split="train", split_name="x"))) == 4
+    # what a split means: a part of a named split, or a file
+    seqs = scan_dataset(tmp_path)
+    path, targets = split_targets(tmp_path, "train", seqs, "x")
+    assert path == tmp_path / "splits" / "x" / "train.txt" and targets == [
+        ("seq_a", f"{i:06d}") for i in range(1, 5)
+    ]
+    assert split_targets(tmp_path, split, seqs) == (split, [("seq_a", "000000"), ("seq_a", "000002")])
 
 
 def test_bad_arguments(tmp_path):

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .format import DatasetError, DatasetWarning, SequenceInfo, scan_dataset
-from .splits import SPLIT_PARTS, read_split, snippet_offsets, split_path
+from .format import DatasetWarning, SequenceInfo, scan_dataset
+from .splits import snippet_offsets, split_targets
 from .static import StaticFilter, kept_runs
 
 __all__ = ["SnippetIndex", "build_index"]
@@ -109,8 +109,9 @@ def build_index(
     sequences = scan_dataset(root, skip_bad=skip_bad)
     frames, owners = _snippet_table(sequences, offsets, static, skip_bad)
     if split is not None:
-        path = _split_file(root, split, split_name)
-        chosen, listed = _listed(path, root, sequences, frames[:, len(offsets) // 2], owners)
+        path, entries = split_targets(root, split, sequences, split_name)
+        chosen = _listed(entries, sequences, frames[:, len(offsets) // 2], owners)
+        listed = len(entries)
         if len(chosen) < listed:
             warnings.warn(
                 f"{path}: {listed - len(chosen)} of {listed} targets have no full snippet "
@@ -149,25 +150,11 @@ def _snippet_table(
     return np.concatenate(tables), np.concatenate(owners)
 
 
-def _split_file(root: Path, split: str | os.PathLike[str], split_name: str) -> Path:
-    """The split file of a named part (``"train"``, ``"val"``, ``"test"``), which must exist, or ``split``."""
-    if isinstance(split, str) and split in SPLIT_PARTS:
-        path = split_path(root, split, split_name)
-        if not path.exists():
-            raise DatasetError(
-                f"{path}: split file not found (write the splits with `cylsfm split {root}`, "
-                "or use --split all)"
-            )
-        return path
-    return Path(split)
-
-
 def _listed(
-    path: Path, root: Path, sequences: list[SequenceInfo], centres: np.ndarray, owners: np.ndarray
-) -> tuple[np.ndarray, int]:
-    """The snippets (rows) whose targets (``centres``, frames of sequences ``owners``) the split file lists,
-    in the file's order, and how many targets it lists."""
-    entries = read_split(path, root, sequences)
+    entries: list[tuple[str, str]], sequences: list[SequenceInfo], centres: np.ndarray, owners: np.ndarray
+) -> np.ndarray:
+    """The snippets (rows) whose targets (``centres``, frames of sequences ``owners``) a split lists
+    (``entries``: ``(sequence, frame)``), in the split's order."""
     seq_of_name = {seq.name: i for i, seq in enumerate(sequences)}
     frame_of = [{stem: i for i, stem in enumerate(seq.stems)} for seq in sequences]
     where = {(s, f): n for n, (s, f) in enumerate(zip(owners.tolist(), centres.tolist(), strict=True))}
@@ -177,4 +164,4 @@ def _listed(
         n = where.get((s, frame_of[s][stem]))
         if n is not None:
             chosen.append(n)
-    return np.asarray(chosen, dtype=np.int64), len(entries)
+    return np.asarray(chosen, dtype=np.int64)

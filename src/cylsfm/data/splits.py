@@ -26,6 +26,7 @@ __all__ = [
     "read_split",
     "snippet_offsets",
     "split_path",
+    "split_targets",
 ]
 
 #: The parts of a split, in the order of ``fractions``.
@@ -54,6 +55,33 @@ def split_path(root: PathLike, part: str, name: str = "default") -> Path:
     """``ROOT/splits/NAME/PART.txt``."""
     _check_name(name, "split name")
     return Path(root) / "splits" / name / f"{part}.txt"
+
+
+def split_targets(
+    root: PathLike, split: PathLike, sequences: Sequence[SequenceInfo], name: str = "default"
+) -> tuple[Path, list[tuple[str, str]]]:
+    """The split file that ``split`` means and its targets (:func:`read_split`).
+
+    Args:
+        root: the dataset root.
+        split: a part (``"train"``, ``"val"``, ``"test"``) of the split ``name`` of ``root``, whose file must
+            exist, or the path of a split file.
+        sequences: the scanned sequences of ``root``.
+        name: which split of ``ROOT/splits`` a part refers to.
+
+    Raises:
+        DatasetError: the file of a part is missing (saying how to write it), or see :func:`read_split`.
+    """
+    if isinstance(split, str) and split in SPLIT_PARTS:
+        path = split_path(root, split, name)
+        if not path.exists():
+            raise DatasetError(
+                f"{path}: split file not found (write the splits with `cylsfm split {root}`, "
+                "or use --split all)"
+            )
+    else:
+        path = Path(split)
+    return path, read_split(path, root, sequences)
 
 
 def _check_name(name: str, what: str) -> None:

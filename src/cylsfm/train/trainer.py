@@ -15,11 +15,11 @@ Data parallel: start one process per device with ``torchrun --nproc_per_node N -
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import random
 import shutil
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -47,6 +47,8 @@ from .scaffold import SlotPriorScaffold
 from .stopping import CONTINUE, NON_FINITE, OUT_OF_TIME, SIGNALLED, StopRequests, agree
 
 __all__ = ["NonFiniteLossError", "SfMNet", "Trainer", "train"]
+
+log = logging.getLogger(__name__)
 
 
 #: What a run writes into its directory: an existing one means the directory holds a run.
@@ -182,7 +184,7 @@ class Trainer:
             for name in done:
                 path = self.run_dir / name
                 shutil.rmtree(path) if path.is_dir() else path.unlink()
-            print(f"{self.run_dir}: removed {', '.join(done)} of the run started over", file=sys.stderr)
+            log.info("%s: removed %s of the run started over", self.run_dir, ", ".join(done))
 
     def _vfov_h(self) -> float | None:
         """The vertical extent ``h`` in ``[-vfov_h, vfov_h]`` of the training panoramas (``None``: not

@@ -88,10 +88,10 @@ def test_export_onnx_keeps_the_previous_model(ckpt, tmp_path, monkeypatch, capsy
 def test_odometry_keeps_its_last_state_and_continues(
     pano, ckpt, tmp_path, monkeypatch, capsys, error, reason
 ):
-    from cylsfm.odometry import run as odometry_run
+    from cylsfm.odometry import track as odometry_track
     from cylsfm.odometry.state import STATE_FILE, State
 
-    monkeypatch.setattr(odometry_run, "CHUNK", 4)
+    monkeypatch.setattr(odometry_track, "CHUNK", 4)
     args = ["odometry", str(pano), "--checkpoint", str(ckpt), "--device", "cpu", "--no-progress"]
     assert main([*args, "--out", str(tmp_path / "whole")]) == 0
     out = tmp_path / "cut"

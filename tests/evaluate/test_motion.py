@@ -181,7 +181,7 @@ class _Oracle:
     """A pose network that returns the true relative poses of the frames it is shown (found by their
     pixels), whatever their order: what a network that measures the motion would do."""
 
-    config = _SlotPrior.config
+    window_length, frame_stride = _SlotPrior.window_length, _SlotPrior.frame_stride
 
     def __init__(self, seq):
         from cylsfm.evaluate.frames import load_images

@@ -100,8 +100,11 @@ def fitted(tmp_path_factory):
 
 @pytest.fixture
 def predictors(fitted, monkeypatch) -> tuple[Predictor, Predictor]:
+    """fp32 and bf16 predictors of the fitted networks, one pass of the pose network each: the fitted head
+    answers the test pairs, not the pairs of a further pass (a source warped by the first pose), where
+    its answers, and so their differences in precision, are arbitrary."""
     monkeypatch.setattr(runtime, "native_bf16", lambda: True)
-    return Predictor(fitted, "cpu", amp=False), Predictor(fitted, "cpu")
+    return Predictor(fitted, "cpu", 0, amp=False), Predictor(fitted, "cpu", 0)
 
 
 def test_bf16_networks_are_copies_and_the_outputs_fp32(predictors) -> None:

@@ -1,0 +1,183 @@
+"""The bundle adjustment on bearings: keypoints to bearings against the closed forms, a ride recovered from
+exact correspondences and perturbed poses, a planted wrong match rejected, and a stretch without
+features held by the odometry's steps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cylsfm.geometry import CylindricalCamera, EquirectangularCamera, invert, rotation_y
+from cylsfm.geometry.bearings import bearing_pixels, pixel_bearings
+from cylsfm.odometry.bundle import BundleSettings, Observations, bundle_adjust, triangulate
+
+pytest.importorskip("gtsam")
+
+
+def test_cylinder_and_equirectangular_keypoints_are_the_closed_forms_bearings():
+    uv = torch.tensor(
+        [[0.0, 0.0], [100.3, 20.7], [255.0, 63.0], [511.0, 127.0], [400.5, 5.25]], dtype=torch.float64
+    )
+    cyl = CylindricalCamera.full(512, 128)
+    theta = (uv[:, 0] - cyl.cx) / cyl.fx
+    h = (uv[:, 1] - cyl.cy) / cyl.fy
+    closed = torch.stack((torch.sin(theta), h, torch.cos(theta)), 1)
+    closed = closed / closed.norm(dim=1, keepdim=True)
+    torch.testing.assert_close(pixel_bearings(cyl, uv), closed)
+    torch.testing.assert_close(bearing_pixels(cyl, 3.0 * closed), uv)
+    eq = EquirectangularCamera.full(512, 256)
+    # x_e = W (theta / 2 pi + 1/2) - 1/2, y_e = H (phi / pi + 1/2) - 1/2 (docs/conventions.md)
+    theta = 2 * math.pi * ((uv[:, 0] + 0.5) / 512 - 0.5)
+    phi = math.pi * ((uv[:, 1] + 0.5) / 256 - 0.5)
+    closed = torch.stack(
+        (torch.cos(phi) * torch.sin(theta), torch.sin(phi), torch.cos(phi) * torch.cos(theta)), 1
+    )
+    torch.testing.assert_close(pixel_bearings(eq, uv), closed)
+    torch.testing.assert_close(bearing_pixels(eq, closed), uv)
+
+
+def _ride(m: int = 24, per_frame: int = 30, seed: int = 0):
+    """A curving ride of ``m`` frames about a metre apart, points beside the road each seen by up to 7
+    frames: ``(true c2w [M,4,4], points [P,3], exact observations)``."""
+    rng = np.random.default_rng(seed)
+    yaw = np.cumsum(np.r_[0.0, rng.normal(0, 0.05, m - 1)])
+    c2w = np.tile(np.eye(4), (m, 1, 1))
+    for j in range(m):
+        c2w[j, :3, :3] = rotation_y(np.asarray(yaw[j]))
+        if j:
+            c2w[j, :3, 3] = c2w[j - 1, :3, 3] + c2w[j, :3, :3] @ np.array([0.0, 0.0, 1.0])
+    local = np.stack(
+        [
+            rng.choice([-1.0, 1.0], m * per_frame) * rng.uniform(3, 8, m * per_frame),
+            rng.uniform(-1.5, 2.5, m * per_frame),
+            rng.uniform(-2, 2, m * per_frame),
+        ],
+        1,
+    )
+    home = np.repeat(np.arange(m), per_frame)
+    points = np.einsum("nij,nj->ni", c2w[home, :3, :3], local) + c2w[home, :3, 3]
+    frame, point = [], []
+    for q, j0 in enumerate(home):
+        for j in range(max(0, j0 - 3), min(m, j0 + 4)):
+            frame.append(j)
+            point.append(q)
+    frame, point = np.array(frame), np.array(point)
+    rel = np.einsum("nji,nj->ni", c2w[frame, :3, :3], points[point] - c2w[frame, :3, 3])
+    return c2w, points, Observations(frame, point, rel / np.linalg.norm(rel, axis=1, keepdims=True))
+
+
+def _perturbed(c2w: np.ndarray, seed: int = 1) -> np.ndarray:
+    """The ride's steps each with a few per cent of length and a few tenths of a degree of rotation off."""
+    rng = np.random.default_rng(seed)
+    out = c2w.copy()
+    for j in range(len(c2w) - 1):
+        step = invert(c2w[j]) @ c2w[j + 1]
+        step[:3, 3] *= 1 + rng.normal(0, 0.05)
+        step[:3, 3] += rng.normal(0, 0.03, 3)
+        step[:3, :3] = rotation_y(np.asarray(rng.normal(0, 0.005))) @ step[:3, :3]
+        out[j + 1] = out[j] @ step
+    return out
+
+
+def _in_scale(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """``est`` with its positions scaled about the first frame by the one factor that fits ``truth`` best
+    (a bundle adjustment's scale is the odometry's)."""
+    a, b = est[:, :3, 3] - est[0, :3, 3], truth[:, :3, 3] - truth[0, :3, 3]
+    out = est.copy()
+    out[:, :3, 3] = est[0, :3, 3] + a * float((a * b).sum() / (a * a).sum())
+    return out
+
+
+def test_exact_correspondences_recover_the_ride_from_perturbed_poses():
+    truth, points, obs = _ride()
+    odometry = _perturbed(truth)
+    assert np.abs(odometry[:, :3, 3] - truth[:, :3, 3]).max() > 0.1  # the odometry has drifted
+    cam = CylindricalCamera.full(512, 128)
+    # exact bearings: a tight noise model, no outliers
+    done = bundle_adjust(odometry, obs, 1 / float(cam.fx), BundleSettings(pixel_sigma=0.01, iterations=100))
+    est = _in_scale(done.c2w, truth)
+    np.testing.assert_allclose(est[:, :3, :3], truth[:, :3, :3], atol=1e-4)
+    np.testing.assert_allclose(est[:, :3, 3], truth[:, :3, 3], atol=1e-4 * 25)  # 1e-4 of the ride's length
+    assert done.inliers.all()
+    scale = float(
+        np.linalg.norm(est[5, :3, 3] - est[0, :3, 3])
+        / np.linalg.norm(done.c2w[5, :3, 3] - done.c2w[0, :3, 3])
+    )
+    np.testing.assert_allclose(done.points, (points - truth[0, :3, 3]) / scale + truth[0, :3, 3], atol=1e-3)
+
+
+def test_a_planted_wrong_match_is_rejected_and_changes_nothing():
+    truth, _, obs = _ride(seed=2)
+    odometry = _perturbed(truth, seed=3)
+    wrong = obs.bearing.copy()
+    n = 100
+    # frame obs.frame[n] matched its keypoint to a point 3 degrees beside the right one (a repeated
+    # texture): still in front, still triangulated, only wrong
+    wrong[n] = rotation_y(np.asarray(math.radians(3.0))) @ wrong[n]
+    bad = Observations(obs.frame, obs.point, wrong)
+    settings = BundleSettings(pixel_sigma=0.05)
+    done = bundle_adjust(odometry, bad, 1 / 81.5, settings)
+    assert not done.inliers[n]
+    assert done.inliers.sum() >= len(obs.frame) - 8  # the wrong one (and at most its point's others)
+    clean = bundle_adjust(odometry, obs, 1 / 81.5, settings)
+    np.testing.assert_allclose(done.c2w, clean.c2w, atol=1e-4)
+
+
+def test_a_stretch_without_features_keeps_the_odometry_s_steps():
+    truth, _, obs = _ride(m=30, seed=4)
+    odometry = _perturbed(truth, seed=5)
+    blind = (obs.frame < 12) | (obs.frame > 17)  # frames 12-17 see nothing (a wall, the sky)
+    done = bundle_adjust(odometry, obs.subset(blind), 1 / 81.5, BundleSettings(pixel_sigma=0.05))
+    steps = [invert(done.c2w[j]) @ done.c2w[j + 1] for j in range(29)]
+    odo = [invert(odometry[j]) @ odometry[j + 1] for j in range(29)]
+    # inside the stretch and into it, each step is the odometry's: nothing jumps (without the odometry's
+    # steps as priors the frames without features would stay where the odometry put them, and the
+    # steps into the stretch would jump by the correction of the frames before it, about 0.27 m here)
+    for j in range(11, 18):
+        assert np.linalg.norm(steps[j][:3, 3] - odo[j][:3, 3]) < 0.05 * np.linalg.norm(odo[j][:3, 3]), j
+        assert (
+            math.degrees(math.acos(np.clip((np.trace(steps[j][:3, :3].T @ odo[j][:3, :3]) - 1) / 2, -1, 1)))
+            < 1.0
+        )
+    lengths = np.array([np.linalg.norm(s[:3, 3]) for s in steps])
+    assert lengths.max() < 1.5 * np.median(lengths) and lengths.min() > 0.5 * np.median(lengths)
+
+    # outside it the adjustment corrects the odometry's steps (each stretch in its own scale: the steps
+    # without features carry the scale across with the odometry's error)
+    def step_error(c2w: np.ndarray, frames: slice) -> float:
+        est = _in_scale(c2w[frames], truth[frames])
+        true = truth[frames]
+        return float(
+            np.mean(
+                [
+                    np.linalg.norm(
+                        (invert(est[k]) @ est[k + 1])[:3, 3] - (invert(true[k]) @ true[k + 1])[:3, 3]
+                    )
+                    for k in range(len(true) - 1)
+                ]
+            )
+        )
+
+    for part in (slice(0, 12), slice(18, 30)):
+        assert step_error(done.c2w, part) < 0.1 * step_error(odometry, part), part
+
+
+def test_triangulation_keeps_only_points_it_can_place():
+    truth, points, obs = _ride(m=8, seed=6)
+    got = triangulate(truth, obs, obs.points)
+    ok = np.isfinite(got[:, 0])
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(got[ok], points[ok], atol=1e-8)
+    one = obs.subset(obs.frame == 0)  # a single view: no depth
+    assert np.isnan(triangulate(truth, one, obs.points)).all()
+    # two views of a point straight ahead, along the ride: no parallax, not kept
+    ahead = Observations(np.array([0, 1]), np.array([0, 0]), np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]))
+    line = np.tile(np.eye(4), (2, 1, 1))
+    line[1, 2, 3] = 1.0
+    assert np.isnan(triangulate(line, ahead, 1)).all()
+    # a point behind the cameras that see it is not kept
+    behind = Observations(np.array([0, 1]), np.array([0, 0]), np.array([[0.6, 0.0, -0.8], [0.8, 0.0, -0.6]]))
+    assert np.isnan(triangulate(line, behind, 1)).all()

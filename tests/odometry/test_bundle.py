@@ -181,3 +181,58 @@ def test_triangulation_keeps_only_points_it_can_place():
     # a point behind the cameras that see it is not kept
     behind = Observations(np.array([0, 1]), np.array([0, 0]), np.array([[0.6, 0.0, -0.8], [0.8, 0.0, -0.6]]))
     assert np.isnan(triangulate(line, behind, 1)).all()
+
+
+def test_features_are_found_across_the_seam_and_never_under_the_mask():
+    from cylsfm.odometry.bundle.features import detect
+
+    rng = np.random.default_rng(7)
+    base = (rng.random((16, 64)) * 255).astype(np.uint8)
+    grey = np.kron(base, np.ones((4, 4), np.uint8))  # 64x256 of 4-pixel blocks: corners everywhere
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    whole = detect(rgb, wraps=True)
+    assert len(whole) > 50
+    assert (whole.uv[:, 0] >= -0.5).all() and (whole.uv[:, 0] < 255.5).all()
+    # the panorama turned by half a turn: the same keypoints, turned, including those on the seam
+    turned = detect(np.roll(rgb, 128, axis=1), wraps=True)
+    back = (turned.uv[:, 0] - 128) % 256
+    near = np.abs(back[:, None] - whole.uv[None, :, 0]) % 256
+    near = np.minimum(near, 256 - near) + np.abs(turned.uv[:, None, 1] - whole.uv[None, :, 1])
+    assert (near.min(axis=1) < 0.5).mean() > 0.9
+    seam = (whole.uv[:, 0] < 4) | (whole.uv[:, 0] > 251)
+    assert seam.any()  # found on the seam, where a frame that does not wrap has none
+    flat = detect(rgb, wraps=False)
+    assert not ((flat.uv[:, 0] < 1) | (flat.uv[:, 0] > 254)).any()
+    mask = np.ones((64, 256), np.uint8)
+    mask[:, 100:180] = 0
+    masked = detect(rgb, wraps=True, mask=mask)
+    assert len(masked) > 20 and not ((masked.uv[:, 0] > 100) & (masked.uv[:, 0] < 179)).any()
+
+
+def test_matches_keep_what_fits_the_odometry_and_tracks_drop_contradictions():
+    from cylsfm.odometry.bundle.features import Features
+    from cylsfm.odometry.bundle.matching import epipolar_angles, match_pair, tracks_of
+
+    truth, _, obs = _ride(m=2, per_frame=40, seed=8)
+    rel = invert(truth[1]) @ truth[0]  # T_{0->1}
+    # the keypoints of both frames: every point seen by both, described by a random descriptor each
+    both = np.intersect1d(obs.point[obs.frame == 0], obs.point[obs.frame == 1])
+    desc = np.random.default_rng(9).random((obs.points, 128)).astype(np.float32)
+    b0 = np.stack([obs.bearing[(obs.frame == 0) & (obs.point == q)][0] for q in both])
+    b1 = np.stack([obs.bearing[(obs.frame == 1) & (obs.point == q)][0] for q in both])
+    assert np.abs(epipolar_angles(b0, b1, rel)).max() < 1e-9  # the true matches lie on their planes
+    # a planted wrong pair: keypoint 0's descriptor given to keypoint 5 of the other frame
+    d1 = desc[both].copy()
+    d1[[0, 5]] = d1[[5, 0]]
+    found = match_pair(
+        Features(np.zeros((len(both), 2)), desc[both]), Features(np.zeros((len(both), 2)), d1), b0, b1, rel
+    )
+    pairs = {tuple(p) for p in found.tolist()}
+    assert (0, 5) not in pairs and (5, 0) not in pairs  # off the epipolar plane: rejected
+    assert len(pairs) == len(both) - 2 and all(k == l for k, l in pairs)
+    # tracks: 0-1-2 chained into one; a chain that reaches two keypoints of one frame is dropped
+    bearings = [np.eye(3)[:2], np.eye(3)[:2], np.eye(3)[:2]]
+    good = tracks_of({(0, 1): np.array([[0, 0]]), (1, 2): np.array([[0, 0]])}, bearings)
+    assert sorted(good.frame.tolist()) == [0, 1, 2] and good.points == 1
+    bad = tracks_of({(0, 1): np.array([[0, 0], [1, 1]]), (1, 2): np.array([[0, 0], [1, 0]])}, bearings)
+    assert bad.points == 0

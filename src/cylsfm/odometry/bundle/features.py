@@ -1,0 +1,60 @@
+"""Sparse features of a ride's frames for the bundle adjustment: SIFT keypoints (OpenCV's; no learned
+weights) on each frame at its own resolution, in its own geometry, across the seam of a full panorama
+and never on an occluder of the mask.
+
+A full panorama's columns wrap: the frame is detected with a band of columns from its other end on each
+side (:data:`WRAP`), so that a corner on the seam is found like any other, and each keypoint found in a
+band is kept once, at its column in the frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["WRAP", "Features", "detect"]
+
+#: Columns taken from the other end on each side of a full panorama before detecting.
+WRAP = 24
+
+
+@dataclass(frozen=True)
+class Features:
+    """A frame's keypoints ``uv [K,2]`` (pixel coordinates, integer values are pixel centres) and their
+    SIFT descriptors ``[K,128]`` (float32)."""
+
+    uv: np.ndarray
+    descriptors: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+
+def detect(rgb: np.ndarray, wraps: bool, mask: np.ndarray | None = None, most: int = 2000) -> Features:
+    """SIFT keypoints of a frame.
+
+    Args:
+        rgb: ``uint8 [H,W,3]``.
+        wraps: whether the columns wrap around (a full panorama).
+        mask: ``[H,W]``, nonzero where the scene is seen (``None``: everywhere); no keypoint on the rest.
+        most: keypoints kept at most (the strongest).
+    """
+    import cv2
+
+    grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+    h, w = grey.shape
+    allowed = np.full((h, w), 255, np.uint8) if mask is None else np.where(mask > 0, 255, 0).astype(np.uint8)
+    pad = min(WRAP, w // 2) if wraps else 0
+    if pad:
+        grey = np.concatenate((grey[:, -pad:], grey, grey[:, :pad]), 1)
+        allowed = np.concatenate((allowed[:, -pad:], allowed, allowed[:, :pad]), 1)
+    sift = cv2.SIFT_create(nfeatures=most)
+    keypoints, descriptors = sift.detectAndCompute(grey, allowed)
+    if descriptors is None or not keypoints:
+        return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    # OpenCV's keypoints are in pixel indices (a blob centred on pixel 30 is found at about 30.24: the
+    # same quarter pixel in every frame, a common turn of every camera that relative poses never see)
+    uv = np.array([k.pt for k in keypoints], dtype=np.float64) - [pad, 0.0]
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5)  # a band's keypoints are the frame's own, kept once
+    return Features(uv[inside], descriptors[inside].astype(np.float32))

@@ -236,3 +236,55 @@ def test_matches_keep_what_fits_the_odometry_and_tracks_drop_contradictions():
     assert sorted(good.frame.tolist()) == [0, 1, 2] and good.points == 1
     bad = tracks_of({(0, 1): np.array([[0, 0], [1, 1]]), (1, 2): np.array([[0, 0], [1, 0]])}, bearings)
     assert bad.points == 0
+
+
+def test_the_bundle_stage_corrects_a_poor_odometry_and_a_second_run_reuses_it(ckpt, tmp_path, monkeypatch):
+    """An untrained model's depth makes a poor refinement; the adjustment of SIFT features across the frames
+    corrects its rotations and its path. Run again, the adjustment is read from the state, not redone; a
+    run killed during the adjustment continues to the same trajectory."""
+    import json
+
+    import cylsfm
+    from cylsfm.data.synth import generate_dataset
+    from cylsfm.odometry import OdometrySettings
+
+    generate_dataset(
+        tmp_path / "data", sequences=1, frames=16, width=256, height=64, seed=3, workers=1, progress=False
+    )
+    seq = tmp_path / "data" / "seq_000"
+    opt = OdometrySettings(refine=True, bundle=True, device="cpu", progress=False)
+    first = cylsfm.odometry(seq, ckpt, tmp_path / "out", opt)
+    adjusted, refined = first.metrics["bundle adjusted"], first.metrics["refined"]
+    assert adjusted["rot_err_deg_mean"] < 0.5 * refined["rot_err_deg_mean"]
+    assert adjusted["ape_rmse"] < refined["ape_rmse"]
+    summary = json.loads((tmp_path / "out" / "odometry.json").read_text())["bundle"]
+    assert summary["points"] > 100 and summary["kept"] > 0.8 * summary["observations"]
+    assert "bundle adjusted" in (tmp_path / "out" / "trajectory.txt").read_text()
+    # the trajectory written is the adjusted one
+    from cylsfm.data.io import read_tum
+    from cylsfm.evaluate.pose_metrics import trajectory_metrics
+
+    times, truth = read_tum(seq / "poses.txt")
+    assert trajectory_metrics(truth, times, first.c2w, times)[0]["ape_rmse"] == pytest.approx(
+        adjusted["ape_rmse"]
+    )
+    assert "bundle adjustment" in first.timings
+    again = cylsfm.odometry(seq, ckpt, tmp_path / "out", opt)
+    assert "bundle adjustment" not in again.timings
+    np.testing.assert_array_equal(again.c2w, first.c2w)
+    # killed during the adjustment (the tracking saved), then run again: the same trajectory
+    from cylsfm.odometry.bundle import stage
+
+    real = stage.bundle_adjust
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stage, "bundle_adjust", killed)
+    with pytest.raises(KeyboardInterrupt):
+        cylsfm.odometry(seq, ckpt, tmp_path / "killed", opt)
+    assert not (tmp_path / "killed" / "trajectory.txt").exists()
+    monkeypatch.setattr(stage, "bundle_adjust", real)
+    resumed = cylsfm.odometry(seq, ckpt, tmp_path / "killed", opt)
+    assert "pose network" not in resumed.timings  # the tracking was not done again
+    np.testing.assert_allclose(resumed.c2w, first.c2w, atol=1e-9)

@@ -67,18 +67,7 @@ def add_ride_options(p: argparse.ArgumentParser) -> None:
         "the direction of travel. Default: a dataset sequence's own mask.png",
     )
     m.add_argument("--no-mask", action="store_true", help="use every pixel, even where mask.png says not to")
-    lp = p.add_mutually_exclusive_group()
-    lp.add_argument(
-        "--loops",
-        dest="loops",
-        action="store_const",
-        const=True,
-        default="auto",
-        help="close loops: find the places the ride comes back to (a heading-invariant descriptor, verified "
-        "by direct alignment both ways) and optimise the whole ride with them (a pose graph that also "
-        "corrects the scale's drift). Default: on for rides of at least 200 frames with a full-panorama model",
-    )
-    lp.add_argument("--no-loops", dest="loops", action="store_const", const=False, help="never close loops")
+    _closure_options(p)
     p.add_argument("--fps", type=float, help="take about N frames a second from a video (default: all)")
     p.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
     p.add_argument("--batch-size", type=int, default=8, help="windows and pairs per call (default 8)")
@@ -91,6 +80,29 @@ def add_ride_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     add_amp_argument(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _closure_options(p: argparse.ArgumentParser) -> None:
+    """Loop closure and the bundle adjustment, the stages after the tracking."""
+    lp = p.add_mutually_exclusive_group()
+    lp.add_argument(
+        "--loops",
+        dest="loops",
+        action="store_const",
+        const=True,
+        default="auto",
+        help="close loops: find the places the ride comes back to (a heading-invariant descriptor, verified "
+        "by direct alignment both ways) and optimise the whole ride with them (a pose graph that also "
+        "corrects the scale's drift). Default: on for rides of at least 200 frames with a full-panorama model",
+    )
+    lp.add_argument("--no-loops", dest="loops", action="store_const", const=False, help="never close loops")
+    p.add_argument(
+        "--bundle",
+        action="store_true",
+        help="after the loops, adjust the poses together with sparse points: SIFT features of every frame at "
+        "its own resolution, matched with the next frames under the odometry's guidance, triangulated and "
+        "bundle-adjusted with the odometry's steps as priors (its scale kept)",
+    )
 
 
 def _mount(value: str) -> float | str:
@@ -163,4 +175,5 @@ def ride_settings(args: argparse.Namespace, depth: bool = False):
         pose_iterations=args.pose_iterations,
         mask=False if args.no_mask else args.mask,
         loops=args.loops,
+        bundle=args.bundle,
     )

@@ -205,6 +205,7 @@ def _identity(
         "steady_height": opt.steady_height,
         "loops": opt.loops,
         "loop": asdict(opt.loop),
+        "bundle": asdict(opt.bundle_settings) if opt.bundle else False,
         "version": __version__,
     }
 
@@ -213,7 +214,8 @@ def _state_identity(identity: dict[str, Any], opt: OdometrySettings) -> dict[str
     """What decides the saved progress: the tracking's identity (the loops keep their own key in the
     state: other loop settings look again on the same tracking) and which depth files are written (in
     network units, or kept apart until the scale to metres is known: so that scale counts)."""
-    tracking = {k: v for k, v in identity.items() if k not in ("camera_height", "steady_height", "loop")}
+    later = ("camera_height", "steady_height", "loop", "bundle")  # stages after the tracking
+    tracking = {k: v for k, v in identity.items() if k not in later}
     return {
         **tracking,
         "ground_fit": opt.camera_height is not None or opt.steady_height,  # every frame's ground height

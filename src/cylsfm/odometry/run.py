@@ -8,6 +8,8 @@ reach them, mask, depth source, fingerprints) and goes through named stages, eac
 2. **find loops** (:mod:`~cylsfm.odometry.loops.search`): the places the ride comes back to;
 3. **steady height** (:func:`~cylsfm.odometry.scale.steady_steps`), then **close the pose graph**
    (:func:`~cylsfm.odometry.loops.graph.closed_steps`) with the accepted loops;
+   **bundle adjustment** (``bundle``, :mod:`~cylsfm.odometry.bundle.stage`): poses and sparse points
+   adjusted to SIFT features matched across frames;
 4. **scale** (:mod:`~cylsfm.odometry.scale`): metres from the camera height;
 5. **write** (:mod:`~cylsfm.odometry.write`): the trajectory, the top view, the measures, the summary.
 
@@ -23,6 +25,7 @@ import time
 import numpy as np
 
 from ..model import Predictor
+from .bundle.stage import adjust_ride
 from .job import Job, resolve_job
 from .loops import closed_steps, find_loops
 from .scale import scale_steps, steady_steps
@@ -78,12 +81,24 @@ def run_job(job: Job, started: float | None = None) -> OdometryResult:
     closed = closed_steps(odometry_steps, loops)
     if closed is not None:
         timings["pose graph"] = time.perf_counter() - t
-    scaled = scale_steps(job, state, closed if closed is not None else odometry_steps)
+    seed = closed if closed is not None else odometry_steps
+    bundled = adjust_ride(job, state, seed) if opt.bundle else None
+    if bundled is not None and bundled.seconds:
+        state.bundled, state.bundle_summary, state.bundle_key = (
+            list(bundled.steps),
+            bundled.summary,
+            bundled.key,
+        )
+        state.save(job.out / STATE_FILE)
+        timings["bundle adjustment"] = bundled.seconds
+    scaled = scale_steps(job, state, bundled.steps if bundled is not None else seed)
     steps = Steps(
         network=np.stack(state.net),
         compass=np.stack(state.compass),
         refined=tracked.steps if opt.refine else None,
         steady=odometry_steps if opt.steady_height and opt.refine else None,
         closed=closed,
+        adjusted=bundled.steps if bundled is not None else None,
     )
-    return write_outputs(job, state, steps, scaled, loops, timings, time.perf_counter() - started)
+    bundle = bundled.summary if bundled is not None else None
+    return write_outputs(job, state, steps, scaled, loops, bundle, timings, time.perf_counter() - started)

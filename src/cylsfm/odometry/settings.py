@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from ..errors import InputError
 from ..geometry import Camera
 from ..geometry.align import AlignConfig
+from .bundle.stage import RideBundleSettings
 from .loops.settings import LoopSettings
 
 __all__ = ["LOOP_MIN_FRAMES", "OdometrySettings"]
@@ -55,6 +56,10 @@ class OdometrySettings:
             ``False``, or ``"auto"``: when the ride has at least :data:`LOOP_MIN_FRAMES` frames and the
             model reads full panoramas.
         loop: how loops are looked for and accepted.
+        bundle: after the loops, adjust the poses together with sparse points triangulated from SIFT
+            features matched across frames (:mod:`~cylsfm.odometry.bundle`), seeded and held by the
+            odometry.
+        bundle_settings: how.
 
     Raises:
         InputError: for a value out of range or ``depth_from`` without ``refine``.
@@ -79,6 +84,8 @@ class OdometrySettings:
     mask: str | os.PathLike[str] | bool | None = None
     loops: bool | str = "auto"
     loop: LoopSettings = field(default_factory=LoopSettings)
+    bundle: bool = False
+    bundle_settings: RideBundleSettings = field(default_factory=RideBundleSettings)
 
     def __post_init__(self) -> None:
         if self.keyframe_every < 1:

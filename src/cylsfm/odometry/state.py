@@ -65,6 +65,11 @@ class State:
     #: the direction of travel in the panorama found from the frames (radians; nan: not found, or not
     #: looked for) and how: ``(agreement, pairs)`` of :func:`~cylsfm.odometry.mount.mount_yaw`
     mount: tuple[float, float, int] = (float("nan"), float("nan"), 0)
+    #: the bundle adjustment's steps ``T_{j->j+1}`` ``[4,4]`` each, its summary's numbers and the fingerprint
+    #: of the settings they were made with (``""``: not adjusted)
+    bundled: list[np.ndarray] = field(default_factory=list)
+    bundle_summary: dict[str, float] = field(default_factory=dict)
+    bundle_key: str = ""
 
     @property
     def next_frame(self) -> int:
@@ -92,6 +97,10 @@ class State:
             "reach": np.array(self.reach, dtype=np.float64),
             "loops_done": np.array(self.loops is not None),
             "loop_key": np.array(self.loop_key),
+            "bundled": _stack(self.bundled, (4, 4)),
+            "bundle_names": np.array(list(self.bundle_summary), dtype=str),
+            "bundle_values": np.array(list(self.bundle_summary.values()), dtype=np.float64),
+            "bundle_key": np.array(self.bundle_key),
             **{f"loopdata_{k}": v for k, v in loops_to_arrays(self.loops or []).items()},
         }
         buf = io.BytesIO()
@@ -126,6 +135,11 @@ class State:
                         {k[9:]: z[k] for k in z.files if k.startswith("loopdata_")}
                     )
                 state.loop_key = str(z["loop_key"])
+                state.bundled = list(z["bundled"])
+                state.bundle_summary = {
+                    str(k): float(v) for k, v in zip(z["bundle_names"], z["bundle_values"], strict=True)
+                }
+                state.bundle_key = str(z["bundle_key"])
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             return None  # unreadable (empty, cut off, not an archive) or from another version: start over
         return state

@@ -70,6 +70,7 @@ class Steps:
     refined: np.ndarray | None
     steady: np.ndarray | None
     closed: np.ndarray | None
+    adjusted: np.ndarray | None = None
 
 
 def write_outputs(
@@ -78,15 +79,23 @@ def write_outputs(
     steps: Steps,
     scaled: Scaled,
     loops: list[Loop] | None,
+    bundle: dict[str, float] | None,
     timings: dict[str, float],
     seconds: float,
 ) -> OdometryResult:
     """Write ``trajectory.txt`` (and with ``refine`` ``trajectory_network.txt``), ``trajectory.png``,
-    ``metrics.json`` (with ground truth) and ``odometry.json``; ``seconds``: the run's time so far."""
+    ``metrics.json`` (with ground truth) and ``odometry.json``; ``bundle``: the bundle adjustment's counts
+    (``None``: not adjusted); ``seconds``: the run's time so far."""
     dest, opt = job.out, job.settings
     c2w, times = chain_poses(scaled.steps), np.asarray(state.times)
     summary_of_loops = loop_summary(loops)
-    write_tum(dest / "trajectory.txt", times, c2w, _header(job, state, scaled, summary_of_loops))
+    header = _header(job, state, scaled, summary_of_loops)
+    if bundle is not None:
+        header.append(
+            f"bundle adjusted: {bundle['points']:.0f} points, {bundle['kept']:.0f} of "
+            f"{bundle['observations']:.0f} observations kept"
+        )
+    write_tum(dest / "trajectory.txt", times, c2w, header)
     if opt.refine:
         network = chain_poses(steps.network)
         write_tum(dest / "trajectory_network.txt", times, network, ["the pose network alone"])
@@ -110,6 +119,7 @@ def write_outputs(
         "direction_of_travel": mount_summary(job.mount_yaw, state.mount),
         "mask": masked,
         "loops": summary_of_loops,
+        "bundle": bundle,
         "depth_maps": opt.save_depth_maps,
         "fingerprint": job.fingerprint,
         "settings": job.identity,
@@ -204,6 +214,7 @@ def _measure(job: Job, state: State, steps: Steps) -> tuple[dict[str, Any], np.n
     if len(gt) != len(state.stems):
         return None
     named = {
+        "bundle adjusted": steps.adjusted,
         "loops closed": steps.closed,
         "steady height": steps.steady,
         "refined": steps.refined,

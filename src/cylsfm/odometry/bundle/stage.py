@@ -1,0 +1,123 @@
+"""The bundle-adjustment stage of :func:`cylsfm.odometry` (``bundle=True``, ``--bundle``): after the loops
+are closed, every frame's SIFT features at its own resolution and in its own geometry (off the mask),
+matches between each frame and the next few guided by the odometry, tracks, and
+:func:`~cylsfm.odometry.bundle.adjust.bundle_adjust` of the poses and points, seeded and held by the
+odometry's steps (its scale kept: the scale stage then brings it to metres as before).
+
+The result is kept in the run's state with the fingerprint of the stage's settings and of the steps it
+started from: a run continued or run again the same way adjusts nothing again; one killed during the
+stage does it again (the tracking and the loops are kept).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from ...data.io import load_mask
+from ...evaluate.pose_metrics import chain_poses
+from ...geometry import invert
+from ...geometry.bearings import pixel_bearings
+from ...runtime import fingerprint, progress_bar
+from .adjust import BundleSettings, bundle_adjust
+from .features import Features, detect
+from .matching import match_pair, tracks_of
+
+if TYPE_CHECKING:
+    from ..job import Job
+    from ..state import State
+
+__all__ = ["Bundled", "RideBundleSettings", "adjust_ride"]
+
+
+@dataclass(frozen=True)
+class RideBundleSettings:
+    """How a ride is adjusted.
+
+    Attributes:
+        span: each frame is matched with the next ``span`` frames.
+        features: SIFT keypoints a frame at most.
+        ratio: Lowe's ratio of the descriptor matches.
+        max_epipolar_deg: a match's largest angle off the odometry's epipolar plane.
+        adjust: the adjustment's own settings.
+    """
+
+    span: int = 4
+    features: int = 2000
+    ratio: float = 0.8
+    max_epipolar_deg: float = 2.0
+    adjust: BundleSettings = field(default_factory=BundleSettings)
+
+
+@dataclass
+class Bundled:
+    """What the stage gave.
+
+    Attributes:
+        steps: the adjusted consecutive steps ``T_{j->j+1}`` ``[M-1,4,4]``, in the odometry's unit.
+        summary: counts (features a frame, tracks, observations, kept, rounds) for ``odometry.json``.
+        key: the fingerprint of the settings it was made with.
+        seconds: the time it took (0 when the state had it).
+    """
+
+    steps: np.ndarray
+    summary: dict
+    key: str
+    seconds: float
+
+
+def adjust_ride(job: Job, state: State, steps: np.ndarray) -> Bundled:
+    """Adjust the ride whose odometry has steps ``steps [M-1,4,4]`` (see the module docstring)."""
+    settings = job.settings.bundle_settings
+    # the settings and the odometry it starts from (other loops, another seed: adjusted again)
+    key = fingerprint({"settings": asdict(settings), "seed": hashlib.sha256(steps.tobytes()).hexdigest()})
+    if state.bundle_key == key and len(state.bundled) == len(steps):
+        return Bundled(np.stack(state.bundled), dict(state.bundle_summary), key, 0.0)
+    started = time.perf_counter()
+    c2w = chain_poses(steps)
+    camera = job.plan.camera  # the frames' own
+    feats, bearings = _features(job, settings, len(c2w))
+    matches = {}
+    for i in range(len(c2w)):
+        for j in range(i + 1, min(len(c2w), i + 1 + settings.span)):
+            rel = invert(c2w[j]) @ c2w[i]  # T_{i->j}
+            matches[(i, j)] = match_pair(
+                feats[i], feats[j], bearings[i], bearings[j], rel, settings.ratio, settings.max_epipolar_deg
+            )
+    obs = tracks_of(matches, bearings)
+    done = bundle_adjust(c2w, obs, 1.0 / float(camera.fx), settings.adjust)
+    adjusted = np.stack([invert(done.c2w[j + 1]) @ done.c2w[j] for j in range(len(c2w) - 1)])
+    summary = {
+        "features_per_frame": float(np.mean([len(f) for f in feats])),
+        "tracks": int(obs.points),
+        "points": int(np.isfinite(done.points[:, 0]).sum()) if obs.points else 0,
+        "observations": len(obs.frame),
+        "kept": int(done.inliers.sum()),
+        "rounds": done.rounds,
+    }
+    return Bundled(adjusted, summary, key, time.perf_counter() - started)
+
+
+def _features(job: Job, settings: RideBundleSettings, m: int) -> tuple[list[Features], list[np.ndarray]]:
+    """Every frame's features and their bearings ``[K,3]`` in the frames' own camera."""
+    camera = job.plan.camera
+    mask = None if job.mask_file is None else load_mask(job.mask_file, job.ride.size)
+    feats, bearings = [], []
+    bar = progress_bar(total=m, desc="features", unit="frame", enabled=job.settings.progress, leave=False)
+    try:
+        for i, _, _, rgb in job.ride.read():
+            if i >= m:
+                break
+            f = detect(rgb, camera.wraps, mask, settings.features)
+            feats.append(f)
+            uv = torch.from_numpy(f.uv)
+            bearings.append(pixel_bearings(camera, uv).numpy() if len(f) else np.zeros((0, 3)))
+            bar.update(1)
+    finally:
+        bar.close()
+    return feats, bearings

@@ -82,7 +82,8 @@ def run_job(job: Job, started: float | None = None) -> OdometryResult:
     if closed is not None:
         timings["pose graph"] = time.perf_counter() - t
     seed = closed if closed is not None else odometry_steps
-    bundled = adjust_ride(job, state, seed) if opt.bundle else None
+    closing = [(lp.i, lp.j) for lp in loops or [] if lp.accepted]
+    bundled = adjust_ride(job, state, seed, closing) if opt.bundle else None
     if bundled is not None and bundled.seconds:
         state.bundled, state.bundle_summary, state.bundle_key = (
             list(bundled.steps),

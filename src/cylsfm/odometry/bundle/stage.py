@@ -4,6 +4,9 @@ matches between each frame and the next few guided by the odometry, tracks, and
 :func:`~cylsfm.odometry.bundle.adjust.bundle_adjust` of the poses and points, seeded and held by the
 odometry's steps (its scale kept: the scale stage then brings it to metres as before).
 
+The frames of every accepted loop are matched as well (guided by the poses with the loops closed), so
+that their tracks join the two visits and the adjustment holds the ride together where it comes back.
+
 The result is kept in the run's state with the fingerprint of the stage's settings and of the steps it
 started from: a run continued or run again the same way adjusts nothing again; one killed during the
 stage does it again (the tracking and the loops are kept).
@@ -71,11 +74,14 @@ class Bundled:
     seconds: float
 
 
-def adjust_ride(job: Job, state: State, steps: np.ndarray) -> Bundled:
-    """Adjust the ride whose odometry has steps ``steps [M-1,4,4]`` (see the module docstring)."""
+def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int, int]] = ()) -> Bundled:
+    """Adjust the ride whose odometry has steps ``steps [M-1,4,4]`` (see the module docstring); the frames
+    of each accepted loop ``(i, j)`` are matched too, so that the adjustment holds the ride together where it
+    comes back."""
     settings = job.settings.bundle_settings
     # the settings and the odometry it starts from (other loops, another seed: adjusted again)
-    key = fingerprint({"settings": asdict(settings), "seed": hashlib.sha256(steps.tobytes()).hexdigest()})
+    seed = hashlib.sha256(steps.tobytes()).hexdigest()
+    key = fingerprint({"settings": asdict(settings), "seed": seed, "loops": sorted(loops)})
     if state.bundle_key == key and len(state.bundled) == len(steps):
         return Bundled(np.stack(state.bundled), dict(state.bundle_summary), key, 0.0)
     started = time.perf_counter()
@@ -83,12 +89,12 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray) -> Bundled:
     camera = job.plan.camera  # the frames' own
     feats, bearings = _features(job, settings, len(c2w))
     matches = {}
-    for i in range(len(c2w)):
-        for j in range(i + 1, min(len(c2w), i + 1 + settings.span)):
-            rel = invert(c2w[j]) @ c2w[i]  # T_{i->j}
-            matches[(i, j)] = match_pair(
-                feats[i], feats[j], bearings[i], bearings[j], rel, settings.ratio, settings.max_epipolar_deg
-            )
+    pairs = [(i, j) for i in range(len(c2w)) for j in range(i + 1, min(len(c2w), i + 1 + settings.span))]
+    for i, j in [*pairs, *loops]:
+        rel = invert(c2w[j]) @ c2w[i]  # T_{i->j}
+        matches[(i, j)] = match_pair(
+            feats[i], feats[j], bearings[i], bearings[j], rel, settings.ratio, settings.max_epipolar_deg
+        )
     obs = tracks_of(matches, bearings)
     done = bundle_adjust(c2w, obs, 1.0 / float(camera.fx), settings.adjust)
     adjusted = np.stack([invert(done.c2w[j + 1]) @ done.c2w[j] for j in range(len(c2w) - 1)])
@@ -99,6 +105,7 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray) -> Bundled:
         "observations": len(obs.frame),
         "kept": int(done.inliers.sum()),
         "rounds": done.rounds,
+        "loop_matches": sum(len(matches[pair]) for pair in loops),
     }
     return Bundled(adjusted, summary, key, time.perf_counter() - started)
 

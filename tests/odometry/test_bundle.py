@@ -288,3 +288,29 @@ def test_the_bundle_stage_corrects_a_poor_odometry_and_a_second_run_reuses_it(ck
     resumed = cylsfm.odometry(seq, ckpt, tmp_path / "killed", opt)
     assert "pose network" not in resumed.timings  # the tracking was not done again
     np.testing.assert_allclose(resumed.c2w, first.c2w, atol=1e-9)
+
+
+def test_a_ride_without_texture_keeps_the_odometry(ckpt, tmp_path):
+    """Frames with nothing to match (one flat grey): no feature, no track, and the odometry's poses are kept
+    as they are, without an error."""
+    import cylsfm
+    from cylsfm.data.format import SequenceWriter
+    from cylsfm.odometry import OdometrySettings
+    from cylsfm.odometry.bundle.features import detect
+
+    grey = np.full((32, 128, 3), 128, np.uint8)
+    assert len(detect(grey, wraps=True)) == 0
+    writer = SequenceWriter(tmp_path / "flat", CylindricalCamera.full(128, 32))
+    for _ in range(6):
+        writer.add_frame(grey)
+    seq = writer.finish()
+    opt = OdometrySettings(device="cpu", progress=False, loops=False)
+    plain = cylsfm.odometry(seq, ckpt, tmp_path / "plain", opt)
+    from dataclasses import replace
+
+    adjusted = cylsfm.odometry(seq, ckpt, tmp_path / "adjusted", replace(opt, bundle=True))
+    np.testing.assert_allclose(adjusted.c2w, plain.c2w, atol=1e-12)
+    import json
+
+    summary = json.loads((tmp_path / "adjusted" / "odometry.json").read_text())["bundle"]
+    assert summary["tracks"] == 0 and summary["rounds"] == 0

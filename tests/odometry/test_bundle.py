@@ -224,9 +224,9 @@ def test_matches_keep_what_fits_the_odometry_and_tracks_drop_contradictions():
     # a planted wrong pair: keypoint 0's descriptor given to keypoint 5 of the other frame
     d1 = desc[both].copy()
     d1[[0, 5]] = d1[[5, 0]]
-    found = match_pair(
-        Features(np.zeros((len(both), 2)), desc[both]), Features(np.zeros((len(both), 2)), d1), b0, b1, rel
-    )
+    n = len(both)
+    none = (np.zeros((n, 2)), np.zeros((n, 3), np.uint8))
+    found = match_pair(Features(none[0], desc[both], none[1]), Features(none[0], d1, none[1]), b0, b1, rel)
     pairs = {tuple(p) for p in found.tolist()}
     assert (0, 5) not in pairs and (5, 0) not in pairs  # off the epipolar plane: rejected
     assert len(pairs) == len(both) - 2 and all(k == l for k, l in pairs)
@@ -269,6 +269,14 @@ def test_the_bundle_stage_corrects_a_poor_odometry_and_a_second_run_reuses_it(ck
         adjusted["ape_rmse"]
     )
     assert "bundle adjustment" in first.timings
+    # the triangulated points, coloured, as a PLY point cloud
+    from plyfile import PlyData
+
+    cloud = PlyData.read(str(tmp_path / "out" / "points.ply"))["vertex"]
+    assert len(cloud) == summary["points"]
+    xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1)
+    assert np.isfinite(xyz).all() and np.ptp(xyz, axis=0).max() > 1.0
+    assert np.stack([cloud["red"], cloud["green"], cloud["blue"]], 1).std() > 5  # the frames' colours
     again = cylsfm.odometry(seq, ckpt, tmp_path / "out", opt)
     assert "bundle adjustment" not in again.timings
     np.testing.assert_array_equal(again.c2w, first.c2w)

@@ -32,7 +32,7 @@ from .scale import scale_steps, steady_steps
 from .settings import OdometrySettings
 from .state import STATE_FILE, State
 from .track import track
-from .write import OdometryResult, Steps, write_outputs
+from .write import OdometryResult, Steps, write_outputs, write_points
 
 __all__ = ["OdometryResult", "OdometrySettings", "odometry", "run_job"]
 
@@ -90,6 +90,7 @@ def run_job(job: Job, started: float | None = None) -> OdometryResult:
             bundled.summary,
             bundled.key,
         )
+        state.bundle_points = np.hstack((bundled.points, bundled.colours.astype(np.float64)))
         state.save(job.out / STATE_FILE)
         timings["bundle adjustment"] = bundled.seconds
     scaled = scale_steps(job, state, bundled.steps if bundled is not None else seed)
@@ -102,4 +103,7 @@ def run_job(job: Job, started: float | None = None) -> OdometryResult:
         adjusted=bundled.steps if bundled is not None else None,
     )
     bundle = bundled.summary if bundled is not None else None
+    if bundled is not None:  # the points in the trajectory's unit
+        points = bundled.points * (scaled.metres_per_unit or 1.0)
+        write_points(job.out / "points.ply", points, bundled.colours, scaled.unit)
     return write_outputs(job, state, steps, scaled, loops, bundle, timings, time.perf_counter() - started)

@@ -70,6 +70,8 @@ class State:
     bundled: list[np.ndarray] = field(default_factory=list)
     bundle_summary: dict[str, float] = field(default_factory=dict)
     bundle_key: str = ""
+    #: its points ``[P,6]``: position (the odometry's unit) and colour
+    bundle_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
 
     @property
     def next_frame(self) -> int:
@@ -101,6 +103,7 @@ class State:
             "bundle_names": np.array(list(self.bundle_summary), dtype=str),
             "bundle_values": np.array(list(self.bundle_summary.values()), dtype=np.float64),
             "bundle_key": np.array(self.bundle_key),
+            "bundle_points": np.asarray(self.bundle_points, dtype=np.float64).reshape(-1, 6),
             **{f"loopdata_{k}": v for k, v in loops_to_arrays(self.loops or []).items()},
         }
         buf = io.BytesIO()
@@ -140,6 +143,7 @@ class State:
                     str(k): float(v) for k, v in zip(z["bundle_names"], z["bundle_values"], strict=True)
                 }
                 state.bundle_key = str(z["bundle_key"])
+                state.bundle_points = np.asarray(z["bundle_points"], dtype=np.float64).reshape(-1, 6)
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             return None  # unreadable (empty, cut off, not an archive) or from another version: start over
         return state

@@ -86,11 +86,14 @@ class Observations:
         frame: ``[N]`` the observing frame (index into the ride).
         point: ``[N]`` the point (track) seen, ``0 .. P-1``.
         bearing: ``[N,3]`` unit bearings in the frame's camera axes (x right, y down, z forward).
+        keypoint: ``[N]`` which keypoint of the ride each is (an index into every frame's keypoints in
+            order), when it came from keypoints; else ``None``.
     """
 
     frame: np.ndarray
     point: np.ndarray
     bearing: np.ndarray
+    keypoint: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.frame)
@@ -107,7 +110,8 @@ class Observations:
 
     def subset(self, keep: np.ndarray) -> Observations:
         """The observations where ``keep [N]`` (bool) is true."""
-        return Observations(self.frame[keep], self.point[keep], self.bearing[keep])
+        keypoint = None if self.keypoint is None else self.keypoint[keep]
+        return Observations(self.frame[keep], self.point[keep], self.bearing[keep], keypoint)
 
 
 @dataclass

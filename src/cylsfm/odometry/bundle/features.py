@@ -21,11 +21,12 @@ WRAP = 24
 
 @dataclass(frozen=True)
 class Features:
-    """A frame's keypoints ``uv [K,2]`` (pixel coordinates, integer values are pixel centres) and their
-    SIFT descriptors ``[K,128]`` (float32)."""
+    """A frame's keypoints ``uv [K,2]`` (pixel coordinates, integer values are pixel centres), their
+    SIFT descriptors ``[K,128]`` (float32) and the frame's colour at each ``uint8 [K,3]``."""
 
     uv: np.ndarray
     descriptors: np.ndarray
+    colours: np.ndarray
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -52,9 +53,12 @@ def detect(rgb: np.ndarray, wraps: bool, mask: np.ndarray | None = None, most: i
     sift = cv2.SIFT_create(nfeatures=most)
     keypoints, descriptors = sift.detectAndCompute(grey, allowed)
     if descriptors is None or not keypoints:
-        return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+        return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros((0, 3), np.uint8))
     # OpenCV's keypoints are in pixel indices (a blob centred on pixel 30 is found at about 30.24: the
     # same quarter pixel in every frame, a common turn of every camera that relative poses never see)
     uv = np.array([k.pt for k in keypoints], dtype=np.float64) - [pad, 0.0]
     inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5)  # a band's keypoints are the frame's own, kept once
-    return Features(uv[inside], descriptors[inside].astype(np.float32))
+    uv = uv[inside]
+    col = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
+    row = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
+    return Features(uv, descriptors[inside].astype(np.float32), np.asarray(rgb)[row, col].astype(np.uint8))

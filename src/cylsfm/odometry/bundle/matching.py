@@ -105,4 +105,4 @@ def tracks_of(matches: dict[tuple[int, int], np.ndarray], bearings: list[np.ndar
     ids = np.unique(roots[keep])
     point = np.searchsorted(ids, roots[keep])
     all_bearings = np.concatenate(bearings) if bearings else np.zeros((0, 3))
-    return Observations(frame_of[keep], point, all_bearings[keep])
+    return Observations(frame_of[keep], point, all_bearings[keep], np.nonzero(keep)[0])

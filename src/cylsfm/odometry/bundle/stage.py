@@ -66,12 +66,16 @@ class Bundled:
         summary: counts (features a frame, tracks, observations, kept, rounds) for ``odometry.json``.
         key: the fingerprint of the settings it was made with.
         seconds: the time it took (0 when the state had it).
+        points: the triangulated points kept ``[P,3]``, in the first frame's world and the odometry's unit,
+            and their colours ``uint8 [P,3]`` (of a frame that sees each).
     """
 
     steps: np.ndarray
     summary: dict
     key: str
     seconds: float
+    points: np.ndarray
+    colours: np.ndarray
 
 
 def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int, int]] = ()) -> Bundled:
@@ -83,7 +87,15 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
     seed = hashlib.sha256(steps.tobytes()).hexdigest()
     key = fingerprint({"settings": asdict(settings), "seed": seed, "loops": sorted(loops)})
     if state.bundle_key == key and len(state.bundled) == len(steps):
-        return Bundled(np.stack(state.bundled), dict(state.bundle_summary), key, 0.0)
+        saved = state.bundle_points
+        return Bundled(
+            np.stack(state.bundled),
+            dict(state.bundle_summary),
+            key,
+            0.0,
+            saved[:, :3],
+            saved[:, 3:].astype(np.uint8),
+        )
     started = time.perf_counter()
     c2w = chain_poses(steps)
     camera = job.plan.camera  # the frames' own
@@ -98,6 +110,11 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
     obs = tracks_of(matches, bearings)
     done = bundle_adjust(c2w, obs, 1.0 / float(camera.fx), settings.adjust)
     adjusted = np.stack([invert(done.c2w[j + 1]) @ done.c2w[j] for j in range(len(c2w) - 1)])
+    kept = np.isfinite(done.points[:, 0]) if obs.points else np.zeros(0, dtype=bool)
+    colours = np.zeros((obs.points, 3), np.uint8)
+    if obs.points:  # each point's colour where its first observation sees it
+        flat = np.concatenate([f.colours for f in feats])
+        colours[obs.point[::-1]] = flat[obs.keypoint[::-1]]
     summary = {
         "features_per_frame": float(np.mean([len(f) for f in feats])),
         "tracks": int(obs.points),
@@ -107,7 +124,8 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
         "rounds": done.rounds,
         "loop_matches": sum(len(matches[pair]) for pair in loops),
     }
-    return Bundled(adjusted, summary, key, time.perf_counter() - started)
+    seconds = time.perf_counter() - started
+    return Bundled(adjusted, summary, key, seconds, done.points[kept], colours[kept])
 
 
 def _features(job: Job, settings: RideBundleSettings, m: int) -> tuple[list[Features], list[np.ndarray]]:

@@ -45,7 +45,7 @@ class _Frame:
     depth: np.ndarray  # [h,w] of ``depth_camera``, in the trajectory's unit
     depth_camera: Camera
     mask: np.ndarray | None  # [h,w], 0 on an occluder
-    small: torch.Tensor  # [3,h,w] the frame at the network's size, in [0, 1]
+    small: torch.Tensor | None  # [3,h,w] the frame at the network's size, in [0, 1] (None: not asked for)
 
 
 @dataclass
@@ -67,8 +67,9 @@ class RidePoses:
     metres_per_unit: float | None
     depth: Path | None
 
-    def frames(self) -> Iterator[_Frame]:
-        """The ride's frames in order, each with its pose, depth and mask."""
+    def frames(self, small: bool = False) -> Iterator[_Frame]:
+        """The ride's frames in order, each with its pose, depth and mask; ``small``: with the frame at the
+        network's size too (made anyway for a frame whose depth is predicted again)."""
         job = self.job
         mask = None if job.mask is None else job.mask[0, 0].numpy()
         scale = np.float32(self.metres_per_unit or 1.0)
@@ -76,13 +77,16 @@ class RidePoses:
         for index, stem, when, rgb in job.ride.read():
             if index >= len(self.c2w):
                 break
-            with torch.inference_mode():
-                small = job.images([rgb])
             saved = None if self.depth is None else self.depth / f"{stem}.npy"
-            if saved is not None and saved.is_file():
+            known = saved is not None and saved.is_file()
+            image = None
+            if small or not known:
+                with torch.inference_mode():
+                    image = job.images([rgb])
+            if known:
                 depth = load_depth(saved)
             else:
-                depth = job.view_of(job.depth([index], small))[0, 0].cpu().numpy() * scale
+                depth = job.view_of(job.depth([index], image))[0, 0].cpu().numpy() * scale
             yield _Frame(
                 index,
                 stem,
@@ -93,7 +97,7 @@ class RidePoses:
                 depth,
                 job.camera,
                 mask,
-                small[0].cpu(),
+                None if image is None or not small else image[0].cpu(),
             )
             n += 1
         if n != len(self.c2w):
@@ -202,7 +206,7 @@ def export_rerun(
     writer = RerunWriter(out, points_per_frame, ride.unit)
     n = 0
     try:
-        for f in ride.frames():
+        for f in ride.frames(small=True):
             colours = (f.small.permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
             writer.add(f.index, f.time, f.rgb, f.c2w, f.depth, f.depth_camera, colours, f.mask)
             n += 1

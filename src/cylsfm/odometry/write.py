@@ -89,7 +89,8 @@ def write_outputs(
     dest, opt = job.out, job.settings
     c2w, times = chain_poses(scaled.steps), np.asarray(state.times)
     summary_of_loops = loop_summary(loops)
-    header = _header(job, state, scaled, summary_of_loops)
+    masked, mount = _mask_summary(job), mount_summary(job.mount_yaw, state.mount)
+    header = _header(job, scaled, masked, mount, summary_of_loops)
     if bundle is not None:
         header.append(
             f"bundle adjusted: {bundle['points']:.0f} points, {bundle['kept']:.0f} of "
@@ -104,7 +105,6 @@ def write_outputs(
     unit = "m" if scaled.metres_per_unit or job.depth.truth else "network units"
     links = [(lp.i, lp.j) for lp in loops or [] if lp.accepted]
     top_view(dest / "trajectory.png", c2w, unit, truth, curves, links=links)
-    masked = _mask_summary(job)
     summary = {
         "input": str(job.ride.path),
         "frames": len(c2w),
@@ -116,7 +116,7 @@ def write_outputs(
         "frames_per_second": len(c2w) / seconds if seconds > 0 else None,
         "timings": timings,
         "refinement": _refine_stats(state) if opt.refine else None,
-        "direction_of_travel": mount_summary(job.mount_yaw, state.mount),
+        "direction_of_travel": mount,
         "mask": masked,
         "loops": summary_of_loops,
         "bundle": bundle,
@@ -144,7 +144,13 @@ def write_outputs(
     )
 
 
-def _header(job: Job, state: State, scaled: Scaled, loops: dict[str, Any] | None) -> list[str]:
+def _header(
+    job: Job,
+    scaled: Scaled,
+    masked: dict[str, Any] | None,
+    mount: dict[str, Any] | None,
+    loops: dict[str, Any] | None,
+) -> list[str]:
     """The trajectory file's comment lines: the unit, how the steps were made, the mask, the direction of
     travel, the loops."""
     opt = job.settings
@@ -152,9 +158,9 @@ def _header(job: Job, state: State, scaled: Scaled, loops: dict[str, Any] | None
         ", steady camera height" if opt.steady_height else ""
     )
     lines = [scaled.note, f"cylsfm {__version__} odometry of {job.ride.path}{how}"]
-    if (masked := _mask_summary(job)) is not None:
+    if masked is not None:
         lines.append(f"mask: {masked['file']} ({masked['occluded_fraction']:.1%} of the pixels left out)")
-    if (mount := mount_summary(job.mount_yaw, state.mount)) is not None:
+    if mount is not None:
         lines.append(f"direction of travel in the panorama: {mount['yaw_deg']:.1f} deg ({mount['how']})")
     if loops is not None:
         line = f"loops: {loops['verified']} candidate pairs verified, {loops['accepted']} accepted"

@@ -65,7 +65,7 @@ class Bundled:
         steps: the adjusted consecutive steps ``T_{j->j+1}`` ``[M-1,4,4]``, in the odometry's unit.
         summary: counts (features a frame, tracks, observations, kept, rounds) for ``odometry.json``.
         key: the fingerprint of the settings it was made with.
-        seconds: the time it took (0 when the state had it).
+        seconds: the time it took (0 when the state had it: ``fresh`` is then ``False``).
         points: the triangulated points kept ``[P,3]``, in the first frame's world and the odometry's unit,
             and their colours ``uint8 [P,3]`` (of a frame that sees each).
     """
@@ -76,6 +76,7 @@ class Bundled:
     seconds: float
     points: np.ndarray
     colours: np.ndarray
+    fresh: bool = True
 
 
 def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int, int]] = ()) -> Bundled:
@@ -95,6 +96,7 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
             0.0,
             saved[:, :3],
             saved[:, 3:].astype(np.uint8),
+            fresh=False,
         )
     started = time.perf_counter()
     c2w = chain_poses(steps)

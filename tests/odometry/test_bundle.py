@@ -322,3 +322,45 @@ def test_a_ride_without_texture_keeps_the_odometry(ckpt, tmp_path):
 
     summary = json.loads((tmp_path / "adjusted" / "odometry.json").read_text())["bundle"]
     assert summary["tracks"] == 0 and summary["rounds"] == 0
+
+
+def test_a_pair_s_relative_pose_is_corrected_from_its_matches_with_the_odometry_s_length():
+    from cylsfm.odometry.bundle.matching import epipolar_angles, relative_pose
+
+    truth, _, obs = _ride(m=2, per_frame=60, seed=10)
+    both = np.intersect1d(obs.point[obs.frame == 0], obs.point[obs.frame == 1])
+    b0 = np.stack([obs.bearing[(obs.frame == 0) & (obs.point == q)][0] for q in both])
+    b1 = np.stack([obs.bearing[(obs.frame == 1) & (obs.point == q)][0] for q in both])
+    rel = invert(truth[1]) @ truth[0]  # T_{0->1}
+    # the odometry: 3 degrees off in yaw, 1 in pitch, the direction of travel 10 degrees off, 40% too long
+    odo = rel.copy()
+    turn = rotation_y(np.asarray(math.radians(3.0))) @ _rotation_x(math.radians(1.0))
+    odo[:3, :3] = turn @ rel[:3, :3]
+    odo[:3, 3] = 1.4 * rotation_y(np.asarray(math.radians(10.0))) @ rel[:3, 3]
+    scale = 2 * 0.3 / 81.5
+    got = relative_pose(b0, b1, odo, scale)
+    np.testing.assert_allclose(got[:3, :3], rel[:3, :3], atol=1e-6)
+    length = np.linalg.norm(odo[:3, 3])
+    np.testing.assert_allclose(np.linalg.norm(got[:3, 3]), length, rtol=1e-9)  # the odometry's length
+    np.testing.assert_allclose(got[:3, 3] / length, rel[:3, 3] / np.linalg.norm(rel[:3, 3]), atol=1e-6)
+    # a sixth of the matches wrong (another point's keypoint, clearly off its epipolar plane): ignored
+    wrong = b1.copy()
+    bad = np.arange(0, len(both), 5)
+    wrong[bad] = b1[np.roll(bad, 1)]
+    bad = bad[epipolar_angles(b0[bad], wrong[bad], rel) > math.radians(2.0)]
+    assert len(bad) >= len(both) // 6
+    wrong = np.where(np.isin(np.arange(len(both)), bad)[:, None], wrong, b1)
+    robust = relative_pose(b0, wrong, odo, scale)
+    np.testing.assert_allclose(robust, got, atol=1e-6)
+    # a camera that did not move: the rotation alone is found
+    still = np.eye(4)
+    still[:3, :3] = rel[:3, :3]
+    turned = b0 @ rel[:3, :3].T
+    odo_still = np.eye(4)
+    odo_still[:3, :3] = turn @ rel[:3, :3]
+    np.testing.assert_allclose(relative_pose(b0, turned, odo_still, scale), still, atol=1e-6)
+
+
+def _rotation_x(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])

@@ -54,7 +54,7 @@ class BundleSettings:
         iterations: Levenberg-Marquardt iterations per solve at most.
     """
 
-    pixel_sigma: float = 1.0
+    pixel_sigma: float = 0.3
     huber: float = 2.0
     outlier: float = 4.0
     step_rotation_deg: float = 1.0

@@ -6,6 +6,12 @@ two bearings lie on one epipolar plane (``b_j . (t x R b_i) = 0`` for ``p_j = R 
 angle, which holds across the seam and behind the camera alike. A camera that barely moved has no
 epipolar plane: its matches must then agree with the rotation alone. Matches chain into tracks (a
 union of every pair's matches); a track that would see two keypoints of one frame is dropped.
+
+The odometry's relative pose is good enough to guide the matches (a match that fits it to 2 degrees), not
+to start a bundle adjustment from: a few degrees off a step near the start of a ride leave the adjustment
+in a wrong minimum. :func:`relative_pose` corrects it from the pair's own matches (the rotation and the
+direction of travel that put them on their epipolar planes, robustly), keeping the odometry's step length,
+which two views cannot see.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import numpy as np
 from .adjust import Observations
 from .features import Features
 
-__all__ = ["epipolar_angles", "match_pair", "tracks_of"]
+__all__ = ["epipolar_angles", "match_pair", "relative_pose", "tracks_of"]
 
 
 def epipolar_angles(b_i: np.ndarray, b_j: np.ndarray, rel: np.ndarray) -> np.ndarray:
@@ -67,6 +73,59 @@ def match_pair(
     found = np.array(pairs, dtype=np.int64)
     angles = epipolar_angles(bearings_a[found[:, 0]], bearings_b[found[:, 1]], rel)
     return found[angles <= math.radians(max_angle_deg)]
+
+
+def relative_pose(b_i: np.ndarray, b_j: np.ndarray, rel: np.ndarray, scale: float) -> np.ndarray:
+    """The relative pose ``T_{i->j}`` ``[4,4]`` that best puts matched bearings ``b_i [K,3]``, ``b_j [K,3]``
+    on their epipolar planes, starting from ``rel`` ``[4,4]`` (the odometry's) and keeping its translation's
+    length.
+
+    The rotation and the direction of the translation (5 degrees of freedom) minimise the matches' angles off
+    their epipolar planes under a Cauchy loss of scale ``scale`` (radians), so that a wrong match weighs
+    little; then again without the matches more than three times ``scale`` off. A translation of (almost)
+    nothing has no direction to find: the rotation alone is then fitted to
+    ``b_j = R b_i``.
+    """
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    rot0, t0 = rel[:3, :3], rel[:3, 3]
+    length = float(np.linalg.norm(t0))
+    if len(b_i) == 0:
+        return rel.copy()
+    if length < 1e-9:
+
+        def turned(x: np.ndarray) -> np.ndarray:
+            rot = Rotation.from_rotvec(x).as_matrix() @ rot0
+            return (b_j - b_i @ rot.T).ravel()
+
+        x = least_squares(turned, np.zeros(3), loss="cauchy", f_scale=scale).x
+        out = rel.copy()
+        out[:3, :3] = Rotation.from_rotvec(x).as_matrix() @ rot0
+        return out
+    d0 = t0 / length
+    e1 = np.cross(d0, [0.0, 1.0, 0.0]) if abs(d0[1]) < 0.9 else np.cross(d0, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d0, e1)
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = d0 + x[3] * e1 + x[4] * e2
+        return Rotation.from_rotvec(x[:3]).as_matrix() @ rot0, t / np.linalg.norm(t)
+
+    def off_plane(x: np.ndarray) -> np.ndarray:
+        rot, t = unpack(x)
+        normal = np.cross(t, b_i @ rot.T)
+        return np.einsum("ki,ki->k", normal, b_j) / np.maximum(np.linalg.norm(normal, axis=1), 1e-12)
+
+    x = least_squares(off_plane, np.zeros(5), loss="cauchy", f_scale=scale).x
+    near = np.abs(off_plane(x)) < 3.0 * scale
+    if 8 <= near.sum() < len(near):  # again without the matches that clearly disagree
+        b_i, b_j = b_i[near], b_j[near]
+        x = least_squares(off_plane, x, loss="cauchy", f_scale=scale).x
+    rot, t = unpack(x)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rot, t * length
+    return out
 
 
 def tracks_of(matches: dict[tuple[int, int], np.ndarray], bearings: list[np.ndarray]) -> Observations:

@@ -4,6 +4,12 @@ matches between each frame and the next few guided by the odometry, tracks, and
 :func:`~cylsfm.odometry.bundle.adjust.bundle_adjust` of the poses and points, seeded and held by the
 odometry's steps (its scale kept: the scale stage then brings it to metres as before).
 
+Each consecutive pair's relative pose is first corrected from its own matches
+(:func:`~cylsfm.odometry.bundle.matching.relative_pose`: the rotation and the direction of travel, the
+odometry's step length kept) where it has at least ``min_matches``; the corrected ride is both the
+adjustment's start and its step priors. Started from the odometry itself, a few degrees off a step
+leave the adjustment in a wrong minimum (docs/results/bundle-adjustment.md).
+
 The frames of every accepted loop are matched as well (guided by the poses with the loops closed), so
 that their tracks join the two visits and the adjustment holds the ride together where it comes back.
 
@@ -29,7 +35,7 @@ from ...geometry.bearings import pixel_bearings
 from ...runtime import fingerprint, progress_bar
 from .adjust import BundleSettings, bundle_adjust
 from .features import Features, detect
-from .matching import match_pair, tracks_of
+from .matching import match_pair, relative_pose, tracks_of
 
 if TYPE_CHECKING:
     from ..job import Job
@@ -47,6 +53,8 @@ class RideBundleSettings:
         features: SIFT keypoints a frame at most.
         ratio: Lowe's ratio of the descriptor matches.
         max_epipolar_deg: a match's largest angle off the odometry's epipolar plane.
+        min_matches: a consecutive pair's relative pose is corrected from its matches when it has this
+            many; else the odometry's step is kept.
         adjust: the adjustment's own settings.
     """
 
@@ -54,6 +62,7 @@ class RideBundleSettings:
     features: int = 2000
     ratio: float = 0.8
     max_epipolar_deg: float = 2.0
+    min_matches: int = 30
     adjust: BundleSettings = field(default_factory=BundleSettings)
 
 
@@ -110,7 +119,9 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
             feats[i], feats[j], bearings[i], bearings[j], rel, settings.ratio, settings.max_epipolar_deg
         )
     obs = tracks_of(matches, bearings)
-    done = bundle_adjust(c2w, obs, 1.0 / float(camera.fx), settings.adjust)
+    pixel = 1.0 / float(camera.fx)
+    seed = _corrected(c2w, matches, bearings, settings.min_matches, 2.0 * settings.adjust.pixel_sigma * pixel)
+    done = bundle_adjust(seed, obs, pixel, settings.adjust)
     adjusted = np.stack([invert(done.c2w[j + 1]) @ done.c2w[j] for j in range(len(c2w) - 1)])
     kept = np.isfinite(done.points[:, 0]) if obs.points else np.zeros(0, dtype=bool)
     colours = np.zeros((obs.points, 3), np.uint8)
@@ -128,6 +139,21 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
     }
     seconds = time.perf_counter() - started
     return Bundled(adjusted, summary, key, seconds, done.points[kept], colours[kept])
+
+
+def _corrected(
+    c2w: np.ndarray, matches: dict, bearings: list[np.ndarray], min_matches: int, scale: float
+) -> np.ndarray:
+    """The ride ``c2w [M,4,4]`` with each consecutive step's rotation and direction corrected from its
+    matches (at least ``min_matches``; ``scale``: the robust loss's, radians)."""
+    out = [c2w[0]]
+    for j in range(len(c2w) - 1):
+        step = invert(c2w[j + 1]) @ c2w[j]  # T_{j->j+1}
+        pairs = matches.get((j, j + 1), np.zeros((0, 2), np.int64))
+        if len(pairs) >= min_matches:
+            step = relative_pose(bearings[j][pairs[:, 0]], bearings[j + 1][pairs[:, 1]], step, scale)
+        out.append(out[-1] @ invert(step))
+    return np.stack(out)
 
 
 def _features(job: Job, settings: RideBundleSettings, m: int) -> tuple[list[Features], list[np.ndarray]]:

@@ -62,7 +62,7 @@ class BundleSettings:
     min_views: int = 2
     min_parallax_deg: float = 1.0
     rounds: int = 2
-    iterations: int = 50
+    iterations: int = 10
 
     def __post_init__(self) -> None:
         positive = (self.pixel_sigma, self.huber, self.outlier, self.step_rotation_deg, self.step_translation)

@@ -72,7 +72,8 @@ class Bundled:
 
     Attributes:
         steps: the adjusted consecutive steps ``T_{j->j+1}`` ``[M-1,4,4]``, in the odometry's unit.
-        summary: counts (features a frame, tracks, observations, kept, rounds) for ``odometry.json``.
+        summary: counts (features a frame, tracks, observations, kept, rounds) and the seconds of each part
+            (features, matching, relative poses, adjustment) for ``odometry.json``.
         key: the fingerprint of the settings it was made with.
         seconds: the time it took (0 when the state had it: ``fresh`` is then ``False``).
         points: the triangulated points kept ``[P,3]``, in the first frame's world and the odometry's unit,
@@ -111,6 +112,7 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
     c2w = chain_poses(steps)
     camera = job.plan.camera  # the frames' own
     feats, bearings = _features(job, settings, len(c2w))
+    clock = {"features": time.perf_counter() - started}
     matches = {}
     pairs = [(i, j) for i in range(len(c2w)) for j in range(i + 1, min(len(c2w), i + 1 + settings.span))]
     for i, j in [*pairs, *loops]:
@@ -119,9 +121,12 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
             feats[i], feats[j], bearings[i], bearings[j], rel, settings.ratio, settings.max_epipolar_deg
         )
     obs = tracks_of(matches, bearings)
+    clock["matching"] = time.perf_counter() - started - sum(clock.values())
     pixel = 1.0 / float(camera.fx)
     seed = _corrected(c2w, matches, bearings, settings.min_matches, 2.0 * settings.adjust.pixel_sigma * pixel)
+    clock["relative poses"] = time.perf_counter() - started - sum(clock.values())
     done = bundle_adjust(seed, obs, pixel, settings.adjust)
+    clock["adjustment"] = done.seconds
     adjusted = np.stack([invert(done.c2w[j + 1]) @ done.c2w[j] for j in range(len(c2w) - 1)])
     kept = np.isfinite(done.points[:, 0]) if obs.points else np.zeros(0, dtype=bool)
     colours = np.zeros((obs.points, 3), np.uint8)
@@ -136,6 +141,7 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
         "kept": int(done.inliers.sum()),
         "rounds": done.rounds,
         "loop_matches": sum(len(matches[pair]) for pair in loops),
+        **{f"{part.replace(' ', '_')}_seconds": round(t, 3) for part, t in clock.items()},
     }
     seconds = time.perf_counter() - started
     return Bundled(adjusted, summary, key, seconds, done.points[kept], colours[kept])

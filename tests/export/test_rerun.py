@@ -65,6 +65,37 @@ def test_the_points_are_the_panoramas_back_projection(tmp_path, monkeypatch):
     assert _rerun("rrd", "verify", str(tmp_path / "r.rrd")).returncode == 0
 
 
+def test_sparse_points_are_logged_once_for_the_whole_ride(tmp_path, monkeypatch):
+    from cylsfm.export.rerun import RerunWriter
+
+    logged = {}
+    real_log = rr.RecordingStream.log
+
+    def log(self, path, entity, *a, **k):
+        logged.setdefault(path, []).append((entity, k.get("static")))
+        return real_log(self, path, entity, *a, **k)
+
+    monkeypatch.setattr(rr.RecordingStream, "log", log)
+    writer = RerunWriter(tmp_path / "r.rrd")
+    xyz = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    writer.add_points(xyz, np.array([[255, 0, 0], [0, 255, 0]], np.uint8))
+    cam = CylindricalCamera.full(64, 16)
+    writer.add(
+        0,
+        0.0,
+        np.zeros((16, 64, 3), np.uint8),
+        np.eye(4),
+        np.ones((16, 64)),
+        cam,
+        np.zeros((16, 64, 3), np.uint8),
+    )
+    writer.finish()
+    ((entity, static),) = logged["world/points"]
+    assert static
+    np.testing.assert_allclose(entity.positions.as_arrow_array().to_pylist(), xyz)
+    assert _rerun("rrd", "verify", str(tmp_path / "r.rrd")).returncode == 0
+
+
 def _logged_camera_poses(recording) -> dict[int, np.ndarray]:
     """Frame index -> the 4x4 transform stored for ``/world/camera`` in a recording file, read back."""
     from rerun.chunk import RrdReader

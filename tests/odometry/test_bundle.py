@@ -277,6 +277,7 @@ def test_the_bundle_stage_corrects_a_poor_odometry_and_a_second_run_reuses_it(ck
     xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1)
     assert np.isfinite(xyz).all() and np.ptp(xyz, axis=0).max() > 1.0
     assert np.stack([cloud["red"], cloud["green"], cloud["blue"]], 1).std() > 5  # the frames' colours
+    _exports_use_the_triangulated_points(seq, ckpt, tmp_path, opt, summary)
     again = cylsfm.odometry(seq, ckpt, tmp_path / "out", opt)
     assert "bundle adjustment" not in again.timings
     np.testing.assert_array_equal(again.c2w, first.c2w)
@@ -296,6 +297,35 @@ def test_the_bundle_stage_corrects_a_poor_odometry_and_a_second_run_reuses_it(ck
     resumed = cylsfm.odometry(seq, ckpt, tmp_path / "killed", opt)
     assert "pose network" not in resumed.timings  # the tracking was not done again
     np.testing.assert_allclose(resumed.c2w, first.c2w, atol=1e-9)
+
+
+def _exports_use_the_triangulated_points(seq, ckpt, tmp_path, opt, summary):
+    """``export colmap`` of the adjusted run writes its triangulated points with the keypoints that saw
+    them: a real reprojection error (neither zero, as for points made from the depth, nor large)."""
+    pytest.importorskip("pycolmap")
+    import pycolmap
+
+    from cylsfm.errors import CylsfmError
+    from cylsfm.odometry.exports import export_colmap
+    from cylsfm.odometry.points import read_points
+
+    points = read_points(tmp_path / "out" / "points.npz", 16, (256, 64))
+    assert len(points.xyz) == summary["points"] and len(points.frame) == summary["kept"]
+    done = export_colmap(seq, ckpt, tmp_path / "colmap", opt, odometry=tmp_path / "out")
+    rec = pycolmap.Reconstruction(str(tmp_path / "colmap" / "sparse" / "0"))
+    assert 0.8 * summary["points"] <= rec.num_points3D() == done["points"] <= summary["points"]
+    assert 0.01 < rec.compute_mean_reprojection_error() < 1.5  # pixels of the 512-pixel views
+    assert rec.compute_mean_track_length() >= 2
+    # each point is where the adjustment put it
+    xyz = np.array([p.xyz for p in rec.points3D.values()])
+    nearest = np.abs(xyz[:, None] - points.xyz[None]).sum(-1).min(1)
+    assert nearest.max() < 1e-9
+    # a points file that does not fit the ride is refused, naming it
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, xyz=points.xyz, rgb=points.rgb, frame=points.frame + 16, point=points.point, uv=points.uv,
+             unit=np.array("x"))  # fmt: skip
+    with pytest.raises(CylsfmError, match=r"bad\.npz: observations of frames or points that do not exist"):
+        read_points(bad, 16, (256, 64))
 
 
 def test_a_ride_without_texture_keeps_the_odometry(ckpt, tmp_path):

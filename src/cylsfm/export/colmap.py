@@ -10,7 +10,9 @@ posed by ``rig_from_world`` (from the trajectory's camera-to-world pose: the cam
 right, y down, z forward), and each of its views an image. Points: a regular sample of each panorama's
 depth (``points_per_frame``), back-projected by the panorama's own camera model into the world,
 coloured by the panorama, each with the track of the views that see it (of its panorama and of its
-neighbours along the ride, where their depth agrees) and the keypoint where it projects.
+neighbours along the ride, where their depth agrees) and the keypoint where it projects; or, given
+(:meth:`ColmapWriter.use_points`: a bundle adjustment's), triangulated points with the keypoints that
+actually saw them, each in the view that sees it nearest its centre.
 
 Conventions (tested against pycolmap's own reader and camera model): COLMAP stores world-to-camera poses
 (quaternions w-first in its text files) and puts pixel centres at +0.5, so a keypoint is the project's pixel
@@ -156,6 +158,7 @@ class ColmapWriter:
         self.rotations = view_rotations(self.options.yaws, self.options.pitches)
         self.panoramas: list[_Panorama] = []
         self._covered: set[tuple] = set()  # the source cameras checked to see every view
+        self._sparse: tuple[np.ndarray, ...] | None = None  # set by use_points
 
     def add(
         self,
@@ -187,6 +190,16 @@ class ColmapWriter:
         points, colours = self._sample(rgb, camera, depth, depth_camera, mask)
         pose = np.asarray(c2w, dtype=np.float64)
         self.panoramas.append(_Panorama(names, pose, depth.astype(np.float32), depth_camera, points, colours))
+
+    def use_points(
+        self, xyz: np.ndarray, rgb: np.ndarray, panorama: np.ndarray, point: np.ndarray, bearing: np.ndarray
+    ) -> None:
+        """Write these points and their tracks instead of points made from the depth: ``xyz [P,3]`` (world,
+        the poses' unit), colours ``rgb uint8 [P,3]``, and each observation: the panorama that saw it
+        (``panorama [N]``, in the order they are added), the point (``point [N]``) and its bearing in the
+        panorama's axes (``bearing [N,3]``). Each observation becomes a keypoint of the view that sees it
+        nearest its centre; one that no view sees is left out, and a point left with fewer than two."""
+        self._sparse = tuple(np.asarray(a) for a in (xyz, rgb, panorama, point, bearing))
 
     def _check_coverage(self, camera: Camera) -> None:
         """Refuse tilted views that reach beyond what ``camera`` sees (black in the images)."""
@@ -273,6 +286,7 @@ class ColmapWriter:
         if not self.panoramas:
             raise CylsfmError(f"{self.out}: no panorama was added")
         rec = self._reconstruction()
+        rec.update_point_3d_errors()  # each point's reprojection error, kept in the model
         sparse = self.out / "sparse" / "0"
         sparse.mkdir(parents=True, exist_ok=True)
         rec.write(str(sparse))
@@ -292,6 +306,7 @@ class ColmapWriter:
             "images": rec.num_images(),
             "points": n,
             "mean_track_length": float(rec.compute_mean_track_length()) if n else 0.0,
+            "mean_reprojection_error": float(rec.compute_mean_reprojection_error()) if n else 0.0,
         }
 
     def _reconstruction(self):
@@ -299,16 +314,12 @@ class ColmapWriter:
         pc, yaws = self.pc, len(self.rotations)
         rec = pc.Reconstruction()
         self._add_rig(rec)
-        worlds = [p.points @ p.world_from_pano[:3, :3].T + p.world_from_pano[:3, 3] for p in self.panoramas]
-        tracks = [[[] for _ in range(len(w))] for w in worlds]  # per panorama, per point: (image, index)
-        span = self.options.track_span
+        if self._sparse is not None:
+            keypoints_of, (worlds, colours, tracks) = self._observed()
+        else:
+            keypoints_of, (worlds, colours, tracks) = self._from_depth()
         for j, pano in enumerate(self.panoramas):
-            keypoints: list[list[np.ndarray]] = [[] for _ in range(yaws)]
-            for i in range(max(0, j - span), min(len(self.panoramas), j + span + 1)):
-                for k, (which, xy) in enumerate(self._seen(worlds[i], pano)):
-                    for p, point in zip(which, xy, strict=True):
-                        tracks[i][p].append((j * yaws + k + 1, len(keypoints[k])))
-                        keypoints[k].append(point)
+            keypoints = keypoints_of[j]
             world_from_rig = pano.world_from_pano.copy()  # the rig's axes: the first view's
             world_from_rig[:3, :3] = world_from_rig[:3, :3] @ self.rotations[0]
             frame = pc.Frame(
@@ -324,11 +335,49 @@ class ColmapWriter:
                 )
                 image.points2D = pc.Point2DList([pc.Point2D(xy) for xy in keypoints[k]])
                 rec.add_image(image)
-        for i, pano in enumerate(self.panoramas):
-            for p, elements in enumerate(tracks[i]):
-                if elements:
-                    rec.add_point3D(worlds[i][p], self._track(elements), pano.colours[p])
+        for world, colour, per_point in zip(worlds, colours, tracks, strict=True):
+            for p, elements in enumerate(per_point):
+                if len(elements) >= (2 if self._sparse is not None else 1):
+                    rec.add_point3D(world[p], self._track(elements), colour[p])
         return rec
+
+    def _from_depth(self):
+        """Points sampled from each panorama's depth: per panorama its views' keypoints, and per panorama
+        its points (world), colours and tracks ``[(image_id, keypoint index), ...]``."""
+        yaws, span = len(self.rotations), self.options.track_span
+        worlds = [p.points @ p.world_from_pano[:3, :3].T + p.world_from_pano[:3, 3] for p in self.panoramas]
+        tracks = [[[] for _ in range(len(w))] for w in worlds]
+        keypoints_of = []
+        for j, pano in enumerate(self.panoramas):
+            keypoints: list[list[np.ndarray]] = [[] for _ in range(yaws)]
+            for i in range(max(0, j - span), min(len(self.panoramas), j + span + 1)):
+                for k, (which, xy) in enumerate(self._seen(worlds[i], pano)):
+                    for p, point in zip(which, xy, strict=True):
+                        tracks[i][p].append((j * yaws + k + 1, len(keypoints[k])))
+                        keypoints[k].append(point)
+            keypoints_of.append(keypoints)
+        return keypoints_of, (worlds, [p.colours for p in self.panoramas], tracks)
+
+    def _observed(self):
+        """The points of :meth:`use_points`, as :meth:`_from_depth` gives them."""
+        xyz, rgb, panorama, point, bearing = self._sparse
+        yaws = len(self.rotations)
+        if len(panorama) and (panorama.min() < 0 or panorama.max() >= len(self.panoramas)):
+            raise CylsfmError(f"points seen by panoramas beyond the {len(self.panoramas)} added")
+        in_views = np.einsum("ni,kij->knj", bearing, self.rotations)  # [K,N,3]: view_from_pano @ b
+        forward = in_views[..., 2]
+        best = np.argmax(forward, axis=0)  # the view it is nearest the centre of
+        local = in_views[best, np.arange(len(bearing))]
+        uv = self.view.project(torch.from_numpy(local).T.reshape(1, 3, 1, -1))[0, :, 0].T.numpy()
+        inside = (local[:, 2] > 1e-9) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= self.view.width - 0.5)
+        inside &= (uv[:, 1] >= -0.5) & (uv[:, 1] <= self.view.height - 0.5)
+        keypoints_of = [[[] for _ in range(yaws)] for _ in self.panoramas]
+        tracks: list[list] = [[] for _ in range(len(xyz))]
+        for n in np.nonzero(inside)[0]:
+            j, k = int(panorama[n]), int(best[n])
+            tracks[int(point[n])].append((j * yaws + k + 1, len(keypoints_of[j][k])))
+            keypoints_of[j][k].append(uv[n] + 0.5)  # COLMAP's pixel centres at +0.5
+        return keypoints_of, ([xyz], [rgb], [tracks])
 
     def _add_rig(self, rec) -> None:
         """One PINHOLE camera per view direction (centred: COLMAP's pixel centres at +0.5) and their rig."""

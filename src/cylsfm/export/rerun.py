@@ -93,6 +93,12 @@ class RerunWriter:
         rec.log("panorama", rr.Image(rgb).compress(jpeg_quality=90))
         rec.log("depth", rr.DepthImage(depth.astype(np.float32), meter=1.0))
 
+    def add_points(self, xyz: np.ndarray, rgb: np.ndarray) -> None:
+        """Log the ride's sparse points ``xyz [P,3]`` (world, the poses' unit) with colours ``rgb uint8
+        [P,3]`` as ``world/points``, for the whole recording."""
+        points = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
+        self.rec.log("world/points", self.rr.Points3D(points, colors=np.asarray(rgb, np.uint8)), static=True)
+
     def finish(self) -> Path:
         """Log the whole trajectory, close the recording and move it into place."""
         if not self.positions:

@@ -25,8 +25,10 @@ from ..data.io import read_tum
 from ..errors import CylsfmError
 from ..export.colmap import ColmapWriter, ViewOptions
 from ..geometry import Camera
+from ..geometry.bearings import pixel_bearings
 from ..model import Predictor
 from .job import Job, resolve_job
+from .points import SparsePoints, read_points
 from .run import run_job
 from .settings import OdometrySettings
 from .write import SUMMARY_FILE
@@ -59,6 +61,7 @@ class RidePoses:
         metres_per_unit: the scale from the network's unit (``None``: none applied).
         depth: the folder of every frame's depth in ``unit`` (``None``: predicted again as the frames
             are read).
+        points: the bundle adjustment's points and tracks, in ``unit`` (``None``: not adjusted).
     """
 
     job: Job
@@ -66,6 +69,7 @@ class RidePoses:
     unit: str
     metres_per_unit: float | None
     depth: Path | None
+    points: SparsePoints | None = None
 
     def frames(self, small: bool = False) -> Iterator[_Frame]:
         """The ride's frames in order, each with its pose, depth and mask; ``small``: with the frame at the
@@ -130,7 +134,13 @@ def ride_poses(
     if odometry is not None:
         return _given(job)
     result = run_job(job)
-    return RidePoses(job, result.c2w, result.unit, result.metres_per_unit, result.depth)
+    points = _points(job, len(result.c2w)) if opt.bundle else None
+    return RidePoses(job, result.c2w, result.unit, result.metres_per_unit, result.depth, points)
+
+
+def _points(job: Job, frames: int) -> SparsePoints:
+    """The bundle adjustment's points of the run in ``job.out``."""
+    return read_points(job.out / "points.npz", frames, job.plan.camera.size)
 
 
 def _given(job: Job) -> RidePoses:
@@ -153,7 +163,8 @@ def _given(job: Job) -> RidePoses:
         )
     _, c2w = read_tum(job.out / "trajectory.txt")
     depth = job.out / "depth" if summary.get("depth_maps") else None
-    return RidePoses(job, c2w, str(summary["unit"]), summary.get("metres_per_unit"), depth)
+    points = _points(job, len(c2w)) if summary.get("bundle") else None
+    return RidePoses(job, c2w, str(summary["unit"]), summary.get("metres_per_unit"), depth, points)
 
 
 def export_colmap(
@@ -169,8 +180,10 @@ def export_colmap(
     The poses are those of the odometry run ``odometry`` (made with the same settings), else of one run
     with ``settings`` (and every frame's depth) into ``OUT/odometry`` (a run already there with the same
     settings is reused, a killed one continued). Writes ``OUT/images/``, ``OUT/sparse/0/``,
-    ``OUT/transforms.json`` and ``OUT/sparse_pc.ply`` from the ride's frames, its trajectory and the depth
-    (metres with ``settings.camera_height``, else the network's units: the same unit as the trajectory).
+    ``OUT/transforms.json`` and ``OUT/sparse_pc.ply`` from the ride's frames, its trajectory and its points:
+    with the bundle adjustment (``settings.bundle``), its triangulated points with the keypoints that saw
+    them; else points made from the depth (metres with ``settings.camera_height``, else the network's
+    units: the same unit as the trajectory).
     Returns a summary (``panoramas``, ``images``, ``points``, ``unit``).
 
     Raises:
@@ -181,6 +194,10 @@ def export_colmap(
     ride = ride_poses(input, checkpoint, out / "odometry", settings, odometry)
     for f in ride.frames():
         writer.add(f.name, f.rgb, f.camera, f.c2w, f.depth, f.depth_camera, f.mask)
+    if ride.points is not None:  # the adjusted points with their keypoints, not points made from the depth
+        sp = ride.points
+        bearings = pixel_bearings(ride.job.plan.camera, torch.from_numpy(sp.uv)).numpy()
+        writer.use_points(sp.xyz, sp.rgb, sp.frame, sp.point, bearings)
     return {**writer.finish(), "unit": ride.unit}
 
 
@@ -206,6 +223,8 @@ def export_rerun(
     writer = RerunWriter(out, points_per_frame, ride.unit)
     n = 0
     try:
+        if ride.points is not None:
+            writer.add_points(ride.points.xyz, ride.points.rgb)
         for f in ride.frames(small=True):
             colours = (f.small.permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
             writer.add(f.index, f.time, f.rgb, f.c2w, f.depth, f.depth_camera, colours, f.mask)

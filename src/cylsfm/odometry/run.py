@@ -28,11 +28,12 @@ from ..model import Predictor
 from .bundle.stage import adjust_ride
 from .job import Job, resolve_job
 from .loops import closed_steps, find_loops
+from .points import write_points
 from .scale import scale_steps, steady_steps
 from .settings import OdometrySettings
 from .state import STATE_FILE, State
 from .track import track
-from .write import OdometryResult, Steps, write_outputs, write_points
+from .write import OdometryResult, Steps, write_outputs
 
 __all__ = ["OdometryResult", "OdometrySettings", "odometry", "run_job"]
 
@@ -91,6 +92,7 @@ def run_job(job: Job, started: float | None = None) -> OdometryResult:
             bundled.key,
         )
         state.bundle_points = np.hstack((bundled.points, bundled.colours.astype(np.float64)))
+        state.bundle_tracks = bundled.tracks
         state.save(job.out / STATE_FILE)
         timings["bundle adjustment"] = bundled.seconds
     scaled = scale_steps(job, state, bundled.steps if bundled is not None else seed)
@@ -105,5 +107,5 @@ def run_job(job: Job, started: float | None = None) -> OdometryResult:
     bundle = bundled.summary if bundled is not None else None
     if bundled is not None:  # the points in the trajectory's unit
         points = bundled.points * (scaled.metres_per_unit or 1.0)
-        write_points(job.out / "points.ply", points, bundled.colours, scaled.unit)
+        write_points(job.out, points, bundled.colours, bundled.tracks, scaled.unit)
     return write_outputs(job, state, steps, scaled, loops, bundle, timings, time.perf_counter() - started)

@@ -72,6 +72,8 @@ class State:
     bundle_key: str = ""
     #: its points ``[P,6]``: position (the odometry's unit) and colour
     bundle_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    #: their observations ``[N,4]``: frame, point, keypoint ``(u, v)`` in the frame's pixels
+    bundle_tracks: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
 
     @property
     def next_frame(self) -> int:
@@ -104,6 +106,7 @@ class State:
             "bundle_values": np.array(list(self.bundle_summary.values()), dtype=np.float64),
             "bundle_key": np.array(self.bundle_key),
             "bundle_points": np.asarray(self.bundle_points, dtype=np.float64).reshape(-1, 6),
+            "bundle_tracks": np.asarray(self.bundle_tracks, dtype=np.float64).reshape(-1, 4),
             **{f"loopdata_{k}": v for k, v in loops_to_arrays(self.loops or []).items()},
         }
         buf = io.BytesIO()
@@ -144,6 +147,10 @@ class State:
                 }
                 state.bundle_key = str(z["bundle_key"])
                 state.bundle_points = np.asarray(z["bundle_points"], dtype=np.float64).reshape(-1, 6)
+                if "bundle_tracks" in z.files:
+                    state.bundle_tracks = np.asarray(z["bundle_tracks"], dtype=np.float64).reshape(-1, 4)
+                else:  # a state from before the tracks were kept: adjusted again
+                    state.bundle_key = ""
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             return None  # unreadable (empty, cut off, not an archive) or from another version: start over
         return state

@@ -24,7 +24,7 @@ from .state import State
 if TYPE_CHECKING:
     from .job import Job
 
-__all__ = ["SUMMARY_FILE", "OdometryResult", "Steps", "loop_summary", "write_outputs", "write_points"]
+__all__ = ["SUMMARY_FILE", "OdometryResult", "Steps", "loop_summary", "write_outputs"]
 
 #: The summary's file name in the output directory.
 SUMMARY_FILE = "odometry.json"
@@ -229,21 +229,3 @@ def _measure(job: Job, state: State, steps: Steps) -> tuple[dict[str, Any], np.n
     }
     metrics, curves = ride_metrics(times, gt, named)
     return metrics, gt, curves
-
-
-def write_points(path: Path, points: np.ndarray, colours: np.ndarray, unit: str) -> Path:
-    """The bundle adjustment's points ``[P,3]`` (world: the first frame's axes, in ``unit``) with their
-    colours ``uint8 [P,3]`` as a binary PLY point cloud, atomically."""
-    from ..export.mesh import Mesh, write_ply
-
-    cloud = Mesh(
-        np.asarray(points, dtype=np.float32).reshape(-1, 3),
-        np.asarray(colours, dtype=np.uint8).reshape(-1, 3),
-        np.zeros((0, 3), np.int32),
-        np.zeros((len(points), 2), np.int64),
-    )
-    comments = [
-        f"cylsfm {__version__} bundle adjustment: triangulated points",
-        f"world: the first frame's camera axes (x right, y down, z forward); unit: {unit}",
-    ]
-    return write_ply(cloud, path, comments, points=True)

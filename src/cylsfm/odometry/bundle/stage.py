@@ -78,6 +78,8 @@ class Bundled:
         seconds: the time it took (0 when the state had it: ``fresh`` is then ``False``).
         points: the triangulated points kept ``[P,3]``, in the first frame's world and the odometry's unit,
             and their colours ``uint8 [P,3]`` (of a frame that sees each).
+        tracks: their observations kept ``[N,4]``: frame, point (an index into ``points``) and the
+            keypoint ``(u, v)`` in the frame's own pixels.
     """
 
     steps: np.ndarray
@@ -86,6 +88,7 @@ class Bundled:
     seconds: float
     points: np.ndarray
     colours: np.ndarray
+    tracks: np.ndarray
     fresh: bool = True
 
 
@@ -106,6 +109,7 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
             0.0,
             saved[:, :3],
             saved[:, 3:].astype(np.uint8),
+            state.bundle_tracks,
             fresh=False,
         )
     started = time.perf_counter()
@@ -143,8 +147,20 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
         "loop_matches": sum(len(matches[pair]) for pair in loops),
         **{f"{part.replace(' ', '_')}_seconds": round(t, 3) for part, t in clock.items()},
     }
+    tracks = _tracks(obs, done.inliers, kept, feats)
     seconds = time.perf_counter() - started
-    return Bundled(adjusted, summary, key, seconds, done.points[kept], colours[kept])
+    return Bundled(adjusted, summary, key, seconds, done.points[kept], colours[kept], tracks)
+
+
+def _tracks(obs, inliers: np.ndarray, kept: np.ndarray, feats: list[Features]) -> np.ndarray:
+    """The observations ``[N,4]`` (frame, point renumbered among the ``kept`` ones, keypoint u, v) that the
+    adjustment kept."""
+    if not obs.points:
+        return np.zeros((0, 4))
+    use = inliers & kept[obs.point]
+    renumbered = np.cumsum(kept) - 1
+    uv = np.concatenate([f.uv for f in feats])[obs.keypoint[use]]
+    return np.column_stack([obs.frame[use], renumbered[obs.point[use]], uv]).astype(np.float64)
 
 
 def _corrected(

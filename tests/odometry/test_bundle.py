@@ -394,3 +394,51 @@ def test_a_pair_s_relative_pose_is_corrected_from_its_matches_with_the_odometry_
 def _rotation_x(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+@pytest.mark.parametrize("case", ["two frames", "still camera", "all masked"])
+def test_bad_rides_for_the_adjustment_keep_the_odometry_or_say_why(ckpt, tmp_path, capsys, case):
+    """A ride of two frames, a camera that never moves, a mask over everything: ``--bundle`` either keeps
+    the odometry's poses or stops with a one-line error naming the input; never a traceback, and an earlier
+    output in the folder is kept whole."""
+    from PIL import Image
+
+    from cylsfm.cli import main
+    from cylsfm.data.format import SequenceWriter
+    from cylsfm.data.synth import generate_dataset
+
+    generate_dataset(
+        tmp_path / "data", sequences=1, frames=6, width=128, height=32, seed=5, workers=1, progress=False
+    )
+    src = tmp_path / "data" / "seq_000"
+    frames = sorted((src / "images").glob("*.png"))
+    writer = SequenceWriter(tmp_path / "ride", CylindricalCamera.full(128, 32))
+    chosen = {"two frames": frames[:2], "still camera": [frames[0]] * 6, "all masked": frames}[case]
+    for f in chosen:
+        writer.add_frame(np.asarray(Image.open(f).convert("RGB")))
+    ride = writer.finish()
+    args = ["odometry", str(ride), "--checkpoint", str(ckpt), "--device", "cpu", "--no-progress", "--refine"]
+    if case == "all masked":
+        Image.fromarray(np.zeros((32, 128), np.uint8)).save(tmp_path / "mask.png")
+        args += ["--mask", str(tmp_path / "mask.png")]
+    plain = main([*args, "--out", str(tmp_path / "plain")])
+    capsys.readouterr()
+    out = tmp_path / "adjusted"
+    out.mkdir()
+    (out / "keep.txt").write_text("earlier")
+    code = main([*args, "--out", str(out), "--bundle"])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert (out / "keep.txt").read_text() == "earlier"
+    if code != 0:
+        assert err.startswith("cylsfm odometry: error:") and len(err.strip().splitlines()) == 1, err
+        assert plain != 0  # refused only what the odometry itself refuses
+        return
+    assert plain == 0
+    from cylsfm.data.io import read_tum
+
+    _, before = read_tum(tmp_path / "plain" / "trajectory.txt")
+    _, after = read_tum(out / "trajectory.txt")
+    assert np.isfinite(after).all() and after.shape == before.shape
+    if case != "two frames":  # nothing to triangulate (no parallax, no feature): the odometry's poses
+        np.testing.assert_allclose(after, before, atol=1e-6)

@@ -32,7 +32,9 @@ class Features:
         return len(self.uv)
 
 
-def detect(rgb: np.ndarray, wraps: bool, mask: np.ndarray | None = None, most: int = 2000) -> Features:
+def detect(
+    rgb: np.ndarray, wraps: bool, mask: np.ndarray | None = None, most: int = 2000, contrast: float = 0.04
+) -> Features:
     """SIFT keypoints of a frame.
 
     Args:
@@ -40,6 +42,7 @@ def detect(rgb: np.ndarray, wraps: bool, mask: np.ndarray | None = None, most: i
         wraps: whether the columns wrap around (a full panorama).
         mask: ``[H,W]``, nonzero where the scene is seen (``None``: everywhere); no keypoint on the rest.
         most: keypoints kept at most (the strongest).
+        contrast: SIFT's contrast threshold (OpenCV's ``contrastThreshold``; lower finds more, weaker).
     """
     import cv2
 
@@ -50,7 +53,7 @@ def detect(rgb: np.ndarray, wraps: bool, mask: np.ndarray | None = None, most: i
     if pad:
         grey = np.concatenate((grey[:, -pad:], grey, grey[:, :pad]), 1)
         allowed = np.concatenate((allowed[:, -pad:], allowed, allowed[:, :pad]), 1)
-    sift = cv2.SIFT_create(nfeatures=most)
+    sift = cv2.SIFT_create(nfeatures=most, contrastThreshold=contrast)
     keypoints, descriptors = sift.detectAndCompute(grey, allowed)
     if descriptors is None or not keypoints:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros((0, 3), np.uint8))

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
 from .adjust import Observations
 from .features import Features
@@ -52,25 +53,17 @@ def match_pair(
 ) -> np.ndarray:
     """Matches ``[K,2]`` (index into ``a``, index into ``b``) between two frames' features whose bearings
     are ``bearings_a [Ka,3]``, ``bearings_b [Kb,3]``, guided by the odometry's ``rel`` ``T_{a->b}``."""
-    import cv2
-
     if len(a) < 2 or len(b) < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    forward = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
-    backward = {
-        m[0].queryIdx: m[0].trainIdx for m in matcher.knnMatch(b.descriptors, a.descriptors, k=1) if m
-    }
-    pairs = [
-        (m[0].queryIdx, m[0].trainIdx)
-        for m in forward
-        if len(m) == 2
-        and m[0].distance < ratio * m[1].distance
-        and backward.get(m[0].trainIdx) == m[0].queryIdx
-    ]
-    if not pairs:
+    with torch.inference_mode():  # every descriptor distance at once (a matrix product)
+        dist = torch.cdist(torch.from_numpy(a.descriptors)[None], torch.from_numpy(b.descriptors)[None])[0]
+        best, nearest = dist.topk(2, dim=1, largest=False)  # [Ka,2]
+        back = dist.argmin(dim=0)  # [Kb]: each of b's nearest in a
+    rows = torch.arange(len(a))
+    keep = (best[:, 0] < ratio * best[:, 1]) & (back[nearest[:, 0]] == rows)
+    if not bool(keep.any()):
         return np.zeros((0, 2), dtype=np.int64)
-    found = np.array(pairs, dtype=np.int64)
+    found = torch.stack([rows[keep], nearest[keep, 0]], 1).numpy().astype(np.int64)
     angles = epipolar_angles(bearings_a[found[:, 0]], bearings_b[found[:, 1]], rel)
     return found[angles <= math.radians(max_angle_deg)]
 

@@ -1,0 +1,163 @@
+"""COLMAP against cylsfm's bundle adjustment at the pixels cylsfm reads: the benchmark's test rides rendered
+as cylinder panoramas (``cylsfm synth``, seed 0, the same town and poses as the benchmark ride of that
+index), each frame also resampled into the band of an equirectangular image of the same angular
+resolution (rows the cylinder does not see are black), which COLMAP reads with its native
+EQUIRECTANGULAR camera (``pycolmap.panorama.run_spherical``: SIFT, sequential matching, incremental
+mapping, 2 threads, on the CPU).
+
+Usage::
+
+    python experiments/bundle_peer.py CHECKPOINT OUT [--rides 1 8 15] [--frames 150] [--width 512]
+
+Per ride, one run each, one after the other (so that they share the machine alike), each from nothing:
+
+1. ``cylsfm odometry --refine`` (loops off: the rides do not come back);
+2. ``cylsfm odometry --refine --bundle``;
+3. COLMAP.
+
+Each is scored against the ride's poses: Sim(3) APE and RPE over the registered frames, the registered
+fraction, the models, the frames more than 1 m off after the alignment (and the APE without them), the
+mean error of a step on turns and on straight road (translation in metres, rotation in degrees), and the
+wall time from frames to poses (COLMAP: from feature extraction to the end of mapping; cylsfm: the whole
+run, the model's loading included). Printed as a table and saved as ``OUT/table.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from colmap_peer import _colmap_measures, _trajectory_where
+
+import cylsfm
+from cylsfm.data.io import load_image, read_tum, save_png
+from cylsfm.data.synth import generate_dataset
+from cylsfm.evaluate.pose_metrics import trajectory_metrics
+from cylsfm.geometry import CylindricalCamera, EquirectangularCamera, sample_image
+from cylsfm.odometry import OdometrySettings
+
+SEED = 0  # the benchmark's
+
+
+def cylinder_ride(out: Path, index: int, frames: int, width: int) -> Path:
+    root = out / "cylinder"
+    seq = root / f"seq_{index:03d}"
+    if not (seq / "poses.txt").is_file():
+        generate_dataset(
+            root, sequences=1, first_index=index, frames=frames, width=width, height=width // 4,
+            seed=SEED, progress=False, overwrite=True, workers=1,
+        )  # fmt: skip
+    return seq
+
+
+def equirect_frames(seq: Path, out: Path) -> Path:
+    """Each cylinder frame of ``seq`` resampled into an equirectangular image of the same width (its rows
+    beyond the cylinder's band black): ``out/NNNNNN.png``, named by the frame's index."""
+    images = sorted((seq / "images").glob("*.png"))
+    if out.is_dir() and len(list(out.glob("*.png"))) == len(images):
+        return out
+    out.mkdir(parents=True, exist_ok=True)
+    first = load_image(images[0])
+    h, w = first.shape[:2]
+    cyl = CylindricalCamera.full(w, h)
+    eq = EquirectangularCamera.full(w, w // 2)
+    rays = eq.rays(eq.pixel_grid(1, dtype=torch.float64))
+    uv = cyl.project(rays)
+    for i, path in enumerate(images):
+        img = torch.from_numpy(load_image(path)).permute(2, 0, 1)[None].double()
+        warped, inside = sample_image(img, uv, True)
+        pano = (warped * inside).round().clamp(0, 255).byte()[0].permute(1, 2, 0).numpy()
+        save_png(out / f"{i:06d}.png", pano)
+    return out
+
+
+def run_colmap(seq: Path, images: Path, work: Path, frames: int) -> dict:
+    import pycolmap
+    from pycolmap.panorama import PanoramaReconstructionOptions, run_spherical
+
+    shutil.rmtree(work, ignore_errors=True)
+    (work / "sparse").mkdir(parents=True)
+    start = time.perf_counter()
+    options = PanoramaReconstructionOptions(num_threads=2, use_gpu=False, show_progress=False)
+    pycolmap.set_random_seed(0)
+    models = run_spherical(images, options, work / "database.db", work / "sparse")
+    seconds = time.perf_counter() - start
+    largest = max((m.num_reg_frames() for m in models.values()), default=0)
+    if largest < 3:  # nothing to align
+        none = dict.fromkeys(("ape_rmse", "rpe_trans_rmse", "rpe_rot_deg_rmse"))
+        return {
+            **none,
+            "registered": largest / frames,
+            "models": len(models),
+            "misplaced": [],
+            "seconds": seconds,
+        }
+    return {**_colmap_measures(seq, models, frames), "seconds": seconds}
+
+
+def run_cylsfm(seq: Path, checkpoint: str, out: Path, bundle: bool) -> dict:
+    shutil.rmtree(out, ignore_errors=True)
+    start = time.perf_counter()
+    result = cylsfm.odometry(
+        seq, checkpoint, out, OdometrySettings(refine=True, bundle=bundle, loops=False, progress=False)
+    )
+    seconds = time.perf_counter() - start
+    gt_t, gt = read_tum(seq / "poses.txt")
+    index = np.arange(len(result.c2w))
+    stats, aligned = trajectory_metrics(gt, gt_t, result.c2w, gt_t)
+    off = np.linalg.norm(aligned - gt[:, :3, 3], axis=1)
+    return {
+        **_trajectory_where(seq, index, result.c2w),
+        "registered": 1.0,
+        "models": 1,
+        "ape_rmse": stats["ape_rmse"],
+        "rpe_trans_rmse": stats["rpe_trans_rmse"],
+        "rpe_rot_deg_rmse": stats["rpe_rot_deg_rmse"],
+        "misplaced": [int(i) for i in np.flatnonzero(off > 1.0)],
+        "seconds": seconds,
+        "constant_velocity": result.metrics["constant_velocity"]["ape_rmse"],
+        "stages": result.timings,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("checkpoint")
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--rides", type=int, nargs="+", default=[1, 8, 15])
+    parser.add_argument("--frames", type=int, default=150)
+    parser.add_argument("--width", type=int, default=512)
+    args = parser.parse_args()
+    table_file = args.out / "table.json"
+    table = json.loads(table_file.read_text()) if table_file.is_file() else {}
+    for index in args.rides:
+        name = f"seq_{index:03d}"
+        seq = cylinder_ride(args.out, index, args.frames, args.width)
+        images = equirect_frames(seq, args.out / "equirect" / name)
+        rows = table.setdefault(name, {})
+        rows["cylsfm --refine"] = run_cylsfm(seq, args.checkpoint, args.out / "refine" / name, False)
+        rows["cylsfm --refine --bundle"] = run_cylsfm(seq, args.checkpoint, args.out / "bundle" / name, True)
+        rows["COLMAP (EQUIRECTANGULAR)"] = run_colmap(seq, images, args.out / "colmap" / name, args.frames)
+        table_file.write_text(json.dumps(table, indent=1))
+        for method, r in rows.items():
+            print(
+                f"{name} {method:26s} APE {r['ape_rmse']} RPE {r['rpe_trans_rmse']} / "
+                f"{r['rpe_rot_deg_rmse']} reg {r['registered']:.2f} models {r['models']} "
+                f"off>1m {len(r['misplaced'])} steps turn {r.get('step_trans_turning')} / "
+                f"{r.get('step_rot_deg_turning')} straight {r.get('step_trans_straight')} / "
+                f"{r.get('step_rot_deg_straight')} wall {r['seconds']:.1f} s",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()

@@ -8,6 +8,12 @@ mapping, 2 threads, on the CPU).
 Usage::
 
     python experiments/bundle_peer.py CHECKPOINT OUT [--rides 1 8 15] [--frames 150] [--width 512]
+    python experiments/bundle_peer.py CHECKPOINT OUT --equirect [--width 1024]
+
+With ``--equirect`` the rides are rendered as equirectangular frames of ``--width`` x ``--width``/2
+instead, which cylsfm reads as they are (its features at their resolution) and COLMAP as its rig of six
+pinhole views of 90 degrees, 320 pixels square, sequential matching with 5 frames each side
+(``experiments/colmap_peer.py``'s set-up, its best at 1024x512).
 
 Per ride, one run each, one after the other (so that they share the machine alike), each from nothing:
 
@@ -48,15 +54,34 @@ from cylsfm.odometry import OdometrySettings
 SEED = 0  # the benchmark's
 
 
-def cylinder_ride(out: Path, index: int, frames: int, width: int) -> Path:
-    root = out / "cylinder"
+def rendered_ride(out: Path, index: int, frames: int, width: int, equirect: bool) -> Path:
+    root = out / ("equirect_frames" if equirect else "cylinder")
     seq = root / f"seq_{index:03d}"
     if not (seq / "poses.txt").is_file():
         generate_dataset(
-            root, sequences=1, first_index=index, frames=frames, width=width, height=width // 4,
-            seed=SEED, progress=False, overwrite=True, workers=1,
+            root, sequences=1, first_index=index, frames=frames, width=width,
+            height=width // 2 if equirect else width // 4, seed=SEED, progress=False, overwrite=True,
+            workers=1, projection="equirect" if equirect else "cylindrical",
         )  # fmt: skip
     return seq
+
+
+def run_colmap_rig(seq: Path, work: Path, frames: int) -> dict:
+    from colmap_peer import run_colmap as rig
+
+    views = argparse.Namespace(views=6, fov=90.0, view_size=320, overlap=5)
+    (work / "images").mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(work / "sparse", ignore_errors=True)
+    row = rig(seq, work, frames, views)
+    if row.get("ape_rmse") is not None:
+        row.update(_steps_without(seq, _models(work / "sparse"), row["misplaced"]))
+    return row
+
+
+def _models(sparse: Path) -> dict:
+    import pycolmap
+
+    return {int(d.name): pycolmap.Reconstruction(d) for d in sparse.iterdir() if d.is_dir()}
 
 
 def equirect_frames(seq: Path, out: Path) -> Path:
@@ -124,16 +149,13 @@ def _steps_without(seq: Path, models: dict, misplaced: list[int]) -> dict:
 
 def remeasure(out: Path) -> None:
     """Add the steps without the misplaced frames to ``OUT/table.json`` from the COLMAP models there."""
-    import pycolmap
-
     table_file = out / "table.json"
     table = json.loads(table_file.read_text())
     for name, rows in table.items():
         row = rows["COLMAP (EQUIRECTANGULAR)"]
         if row.get("ape_rmse") is None:
             continue
-        sparse = out / "colmap" / name / "sparse"
-        models = {int(d.name): pycolmap.Reconstruction(d) for d in sparse.iterdir() if d.is_dir()}
+        models = _models(out / "colmap" / name / "sparse")
         row.update(_steps_without(out / "cylinder" / name, models, row["misplaced"]))
     table_file.write_text(json.dumps(table, indent=1))
 
@@ -170,6 +192,7 @@ def main() -> None:
     parser.add_argument("--rides", type=int, nargs="+", default=[1, 8, 15])
     parser.add_argument("--frames", type=int, default=150)
     parser.add_argument("--width", type=int, default=512)
+    parser.add_argument("--equirect", action="store_true", help="equirectangular frames; COLMAP's rig")
     parser.add_argument(
         "--remeasure", action="store_true", help="only add COLMAP's steps without misplaced frames"
     )
@@ -181,12 +204,17 @@ def main() -> None:
     table = json.loads(table_file.read_text()) if table_file.is_file() else {}
     for index in args.rides:
         name = f"seq_{index:03d}"
-        seq = cylinder_ride(args.out, index, args.frames, args.width)
-        images = equirect_frames(seq, args.out / "equirect" / name)
+        seq = rendered_ride(args.out, index, args.frames, args.width, args.equirect)
         rows = table.setdefault(name, {})
         rows["cylsfm --refine"] = run_cylsfm(seq, args.checkpoint, args.out / "refine" / name, False)
         rows["cylsfm --refine --bundle"] = run_cylsfm(seq, args.checkpoint, args.out / "bundle" / name, True)
-        rows["COLMAP (EQUIRECTANGULAR)"] = run_colmap(seq, images, args.out / "colmap" / name, args.frames)
+        if args.equirect:
+            rows["COLMAP (rig of views)"] = run_colmap_rig(seq, args.out / "colmap" / name, args.frames)
+        else:
+            images = equirect_frames(seq, args.out / "equirect" / name)
+            rows["COLMAP (EQUIRECTANGULAR)"] = run_colmap(
+                seq, images, args.out / "colmap" / name, args.frames
+            )
         table_file.write_text(json.dumps(table, indent=1))
         for method, r in rows.items():
             print(

@@ -314,3 +314,22 @@ def test_invalid_arguments_are_input_errors_before_any_file_is_read(tmp_path, kw
             evaluate_pose(given, tmp_path / "nothing", **kwargs)
     with pytest.raises(InputError, match="yaw_roll"):
         evaluate_pose(str(tmp_path), tmp_path / "nothing", yaw_roll=0)
+
+
+def test_a_thousand_float32_steps_chain_to_rotations():
+    """Steps whose rotations are rotations only to float32's precision (as the networks give them) chain
+    into poses that are still rotations after 2000 frames, which evo's metrics require."""
+    from cylsfm.evaluate.pose_metrics import chain_poses, trajectory_metrics
+    from cylsfm.geometry import rotation_y
+
+    rng = np.random.default_rng(0)
+    steps = np.tile(np.eye(4), (2000, 1, 1))
+    steps[:, :3, :3] = rotation_y(np.asarray(rng.normal(0, 0.05, 2000)))
+    steps[:, 2, 3] = -1.0
+    noisy = steps.astype(np.float32) + rng.normal(0, 3e-7, steps.shape).astype(np.float32)
+    c2w = chain_poses(noisy)
+    gram = np.einsum("nji,njk->nik", c2w[:, :3, :3], c2w[:, :3, :3])
+    assert np.abs(gram - np.eye(3)).max() < 1e-9
+    times = np.arange(2001) * 0.2
+    stats, _ = trajectory_metrics(chain_poses(steps), times, c2w, times)
+    assert stats["ape_rmse"] < 1.0

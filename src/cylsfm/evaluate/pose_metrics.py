@@ -128,8 +128,15 @@ def snippet_ates(
 def chain_poses(steps: np.ndarray) -> np.ndarray:
     """Camera-to-world poses ``[M,4,4]`` (first = identity) from consecutive relative poses
     ``steps [M-1,4,4]`` = ``T_{j->j+1}`` (target ``j``, source ``j+1``: ``p_{j+1} = T p_j``):
-    ``c2w_{j+1} = c2w_j @ inv(T_{j->j+1})``."""
-    steps = np.asarray(steps, dtype=np.float64)
+    ``c2w_{j+1} = c2w_j @ inv(T_{j->j+1})``. Each step's rotation is first brought to the nearest rotation
+    (a float32 step is one to about 1e-7; chained over a thousand frames, that would no longer be a
+    rotation by evo's test)."""
+    steps = np.array(steps, dtype=np.float64)
+    if len(steps):
+        u, _, vt = np.linalg.svd(steps[:, :3, :3])
+        flip = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
+        u[:, :, 2] *= flip[:, None]
+        steps[:, :3, :3] = u @ vt
     out = np.tile(np.eye(4), (len(steps) + 1, 1, 1))
     for j, t in enumerate(steps):
         out[j + 1] = out[j] @ invert(t)

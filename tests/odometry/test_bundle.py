@@ -313,6 +313,7 @@ def _exports_use_the_triangulated_points(seq, ckpt, tmp_path, opt, summary):
     assert len(points.xyz) == summary["points"] and len(points.frame) == summary["kept"]
     done = export_colmap(seq, ckpt, tmp_path / "colmap", opt, odometry=tmp_path / "out")
     rec = pycolmap.Reconstruction(str(tmp_path / "colmap" / "sparse" / "0"))
+    assert done["points_from"] == "bundle adjustment"
     assert 0.8 * summary["points"] <= rec.num_points3D() == done["points"] <= summary["points"]
     assert 0.01 < rec.compute_mean_reprojection_error() < 1.5  # pixels of the 512-pixel views
     assert rec.compute_mean_track_length() >= 2
@@ -352,6 +353,14 @@ def test_a_ride_without_texture_keeps_the_odometry(ckpt, tmp_path):
 
     summary = json.loads((tmp_path / "adjusted" / "odometry.json").read_text())["bundle"]
     assert summary["tracks"] == 0 and summary["rounds"] == 0
+    # exported, the model still has points to start a splat from: the depth's
+    pytest.importorskip("pycolmap")
+    from cylsfm.odometry.exports import export_colmap
+
+    done = export_colmap(
+        seq, ckpt, tmp_path / "colmap", replace(opt, bundle=True), odometry=tmp_path / "adjusted"
+    )
+    assert done["points_from"] == "depth" and done["points"] > 0
 
 
 def test_a_pair_s_relative_pose_is_corrected_from_its_matches_with_the_odometry_s_length():

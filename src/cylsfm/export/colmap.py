@@ -159,6 +159,7 @@ class ColmapWriter:
         self.panoramas: list[_Panorama] = []
         self._covered: set[tuple] = set()  # the source cameras checked to see every view
         self._sparse: tuple[np.ndarray, ...] | None = None  # set by use_points
+        self.points_from = "depth"  # or "bundle adjustment": what finish wrote
 
     def add(
         self,
@@ -198,7 +199,9 @@ class ColmapWriter:
         the poses' unit), colours ``rgb uint8 [P,3]``, and each observation: the panorama that saw it
         (``panorama [N]``, in the order they are added), the point (``point [N]``) and its bearing in the
         panorama's axes (``bearing [N,3]``). Each observation becomes a keypoint of the view that sees it
-        nearest its centre; one that no view sees is left out, and a point left with fewer than two."""
+        nearest its centre; one that no view sees is left out, and a point left with fewer than two. When
+        no point is left (a ride with too little texture), the points are made from the depth after all:
+        splat trainers need points to start from."""
         self._sparse = tuple(np.asarray(a) for a in (xyz, rgb, panorama, point, bearing))
 
     def _check_coverage(self, camera: Camera) -> None:
@@ -307,6 +310,7 @@ class ColmapWriter:
             "points": n,
             "mean_track_length": float(rec.compute_mean_track_length()) if n else 0.0,
             "mean_reprojection_error": float(rec.compute_mean_reprojection_error()) if n else 0.0,
+            "points_from": self.points_from,
         }
 
     def _reconstruction(self):
@@ -314,9 +318,12 @@ class ColmapWriter:
         pc, yaws = self.pc, len(self.rotations)
         rec = pc.Reconstruction()
         self._add_rig(rec)
+        self.points_from = "depth"
         if self._sparse is not None:
             keypoints_of, (worlds, colours, tracks) = self._observed()
-        else:
+            if any(len(t) >= 2 for t in tracks[0]):
+                self.points_from = "bundle adjustment"
+        if self.points_from == "depth":  # none given, or none that two views see: the depth's
             keypoints_of, (worlds, colours, tracks) = self._from_depth()
         for j, pano in enumerate(self.panoramas):
             keypoints = keypoints_of[j]
@@ -337,7 +344,7 @@ class ColmapWriter:
                 rec.add_image(image)
         for world, colour, per_point in zip(worlds, colours, tracks, strict=True):
             for p, elements in enumerate(per_point):
-                if len(elements) >= (2 if self._sparse is not None else 1):
+                if len(elements) >= (2 if self.points_from == "bundle adjustment" else 1):
                     rec.add_point3D(world[p], self._track(elements), colour[p])
         return rec
 

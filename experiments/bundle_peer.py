@@ -42,7 +42,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from colmap_peer import _colmap_measures, _trajectory_where
+from colmap_peer import _colmap_measures, _trajectory_where, frame_poses
 
 import cylsfm
 from cylsfm.data.io import load_image, read_tum, save_png
@@ -132,18 +132,9 @@ def run_colmap(seq: Path, images: Path, work: Path, frames: int) -> dict:
 
 def _steps_without(seq: Path, models: dict, misplaced: list[int]) -> dict:
     """The step errors of COLMAP's largest model without its misplaced frames (and their steps)."""
-    rec = max(models.values(), key=lambda r: r.num_reg_frames())
-    index, c2w = [], []
-    for frame in rec.frames.values():
-        if frame.has_pose:
-            name = next(rec.images[d.id].name for d in frame.data_ids)
-            if int(Path(name).stem) not in misplaced:
-                index.append(int(Path(name).stem))
-                world = np.eye(4)
-                world[:3] = frame.rig_from_world.inverse().matrix()
-                c2w.append(world)
-    order = np.argsort(index)
-    where = _trajectory_where(seq, np.asarray(index)[order], np.stack(c2w)[order])
+    index, c2w = frame_poses(max(models.values(), key=lambda r: r.num_reg_frames()))
+    keep = ~np.isin(index, misplaced)
+    where = _trajectory_where(seq, index[keep], c2w[keep])
     return {f"{k}_without_misplaced": v for k, v in where.items() if k.startswith("step_")}
 
 

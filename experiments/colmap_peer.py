@@ -145,12 +145,9 @@ def run_colmap(seq: Path, work: Path, n: int, args: argparse.Namespace) -> dict:
     return {**_colmap_measures(seq, models, n), "seconds": seconds, "frames": n}
 
 
-def _colmap_measures(seq: Path, models: dict, n: int) -> dict:
-    gt_t, gt = read_tum(seq / "poses.txt")
-    gt_t, gt = gt_t[:n], gt[:n]
-    if not models:
-        return {"registered": 0.0, "models": 0, **dict.fromkeys(MEASURES)}
-    rec = max(models.values(), key=lambda r: r.num_reg_frames())
+def frame_poses(rec) -> tuple[np.ndarray, np.ndarray]:
+    """The posed frames of a COLMAP model in frame order: their numbers (the images' file stems) ``[n]``
+    and camera-to-world poses ``[n,4,4]`` (the rig's frame: its first view's, the panorama's axes)."""
     index, c2w = [], []
     for frame in rec.frames.values():
         if not frame.has_pose:
@@ -161,7 +158,15 @@ def _colmap_measures(seq: Path, models: dict, n: int) -> dict:
         world[:3] = frame.rig_from_world.inverse().matrix()
         c2w.append(world)
     order = np.argsort(index)
-    index, c2w = np.asarray(index)[order], np.stack(c2w)[order]
+    return np.asarray(index)[order], np.stack(c2w)[order]
+
+
+def _colmap_measures(seq: Path, models: dict, n: int) -> dict:
+    gt_t, gt = read_tum(seq / "poses.txt")
+    gt_t, gt = gt_t[:n], gt[:n]
+    if not models:
+        return {"registered": 0.0, "models": 0, **dict.fromkeys(MEASURES)}
+    index, c2w = frame_poses(max(models.values(), key=lambda r: r.num_reg_frames()))
     stats, aligned = trajectory_metrics(gt, gt_t, c2w, gt_t[index])
     # gross failures: frames placed more than 10x the median error away (and at least 1 m)
     err = np.linalg.norm(aligned - gt[index][:, :3, 3], axis=1)

@@ -46,6 +46,16 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def add_pose_iterations_argument(p: argparse.ArgumentParser) -> None:
+    """``--pose-iterations N`` (``args.pose_iterations``; ``None``: the network's own default)."""
+    p.add_argument(
+        "--pose-iterations",
+        type=int,
+        help="passes of the pose network over each source warped by its current pose, after the first "
+        "(default: 3 for a pair pose network, 0 for the paper's one-pass network)",
+    )
+
+
 def add_amp_argument(p: argparse.ArgumentParser) -> None:
     """``--no-amp``: the networks in fp32 (``args.amp`` False); default bf16 where it is native."""
     p.add_argument(

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from .base import add_amp_argument, command
+from .base import add_amp_argument, add_pose_iterations_argument, command
 
 
 def _evaluate_args(p: argparse.ArgumentParser) -> None:
@@ -84,12 +84,7 @@ def _depth_args(depth: argparse.ArgumentParser) -> None:
 
 def _pose_args(pose: argparse.ArgumentParser) -> None:
     pose.add_argument("--snippet", type=int, default=5, help="frames per ATE snippet (default 5)")
-    pose.add_argument(
-        "--pose-iterations",
-        type=int,
-        help="passes of the pose network over each source warped by its current pose, after the first "
-        "(default: 3 for a pair pose network, 0 for the paper's one-pass network)",
-    )
+    add_pose_iterations_argument(pose)
     pose.add_argument(
         "--yaw-roll",
         type=int,

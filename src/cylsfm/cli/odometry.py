@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import functools
 
-from .base import add_amp_argument, command
+from .base import add_amp_argument, add_pose_iterations_argument, command
 
 
 def _odometry_args(p: argparse.ArgumentParser) -> None:
@@ -71,12 +71,7 @@ def add_ride_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fps", type=float, help="take about N frames a second from a video (default: all)")
     p.add_argument("--stride", type=int, default=1, help="take every N-th frame (default 1)")
     p.add_argument("--batch-size", type=int, default=8, help="windows and pairs per call (default 8)")
-    p.add_argument(
-        "--pose-iterations",
-        type=int,
-        help="passes of the pose network over each source warped by its current pose, after the first "
-        "(default: 3 for a pair pose network, 0 for the paper's one-pass network)",
-    )
+    add_pose_iterations_argument(p)
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     add_amp_argument(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -10,6 +10,9 @@ Usage::
     python experiments/bundle_peer.py CHECKPOINT OUT [--rides 1 8 15] [--frames 150] [--width 512]
     python experiments/bundle_peer.py CHECKPOINT OUT --equirect [--width 1024]
 
+``--keep-colmap`` reruns cylsfm only, keeping the COLMAP rows that ``OUT/table.json`` already has (a ride
+without one runs COLMAP too).
+
 With ``--equirect`` the rides are rendered as equirectangular frames of ``--width`` x ``--width``/2
 instead, which cylsfm reads as they are (its features at their resolution) and COLMAP as its rig of six
 pinhole views of 90 degrees, 320 pixels square, sequential matching with 5 frames each side
@@ -187,6 +190,9 @@ def main() -> None:
     parser.add_argument(
         "--remeasure", action="store_true", help="only add COLMAP's steps without misplaced frames"
     )
+    parser.add_argument(
+        "--keep-colmap", action="store_true", help="run cylsfm only; keep COLMAP's rows already in the table"
+    )
     args = parser.parse_args()
     if args.remeasure:
         remeasure(args.out)
@@ -199,7 +205,9 @@ def main() -> None:
         rows = table.setdefault(name, {})
         rows["cylsfm --refine"] = run_cylsfm(seq, args.checkpoint, args.out / "refine" / name, False)
         rows["cylsfm --refine --bundle"] = run_cylsfm(seq, args.checkpoint, args.out / "bundle" / name, True)
-        if args.equirect:
+        if args.keep_colmap and any(k.startswith("COLMAP") for k in rows):
+            pass
+        elif args.equirect:
             rows["COLMAP (rig of views)"] = run_colmap_rig(seq, args.out / "colmap" / name, args.frames)
         else:
             images = equirect_frames(seq, args.out / "equirect" / name)

@@ -13,6 +13,7 @@ import torch
 from cylsfm.geometry import CylindricalCamera, EquirectangularCamera, invert, rotation_y
 from cylsfm.geometry.bearings import bearing_pixels, pixel_bearings
 from cylsfm.odometry.bundle import BundleSettings, Observations, bundle_adjust, triangulate
+from cylsfm.odometry.bundle.matching import epipolar_angles, match_pair
 
 pytest.importorskip("gtsam")
 
@@ -209,6 +210,37 @@ def test_features_are_found_across_the_seam_and_never_under_the_mask():
     assert len(masked) > 20 and not ((masked.uv[:, 0] > 100) & (masked.uv[:, 0] < 179)).any()
 
 
+def test_keypoints_are_where_the_blobs_are_to_a_few_hundredths_of_a_pixel():
+    """SIFT's keypoints in our pixel convention (integer values are pixel centres), without OpenCV's
+    default quarter-pixel shift, which would tilt every bearing of a row."""
+    from cylsfm.odometry.bundle.features import detect
+
+    rng = np.random.default_rng(0)
+    h, w = 128, 512
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    grey = np.full((h, w), 128.0)
+    centres = []
+    for cy in range(20, h - 20, 30):
+        for cx in range(0, w, 32):  # across the seam too
+            x0, y0, s = cx + rng.uniform(-0.5, 0.5), cy + rng.uniform(-0.5, 0.5), rng.uniform(2.0, 3.5)
+            for shift in (-w, 0, w):
+                grey += rng.choice([-90, 90]) * np.exp(
+                    -((xx - x0 - shift) ** 2 + (yy - y0) ** 2) / (2 * s * s)
+                )
+            centres.append((x0 % w, y0))
+    rgb = np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+    found = detect(rgb, wraps=True, contrast=0.01)
+    centres = np.array(centres)
+    du = found.uv[:, None, 0] - centres[None, :, 0]
+    du = (du + w / 2) % w - w / 2
+    dist = np.hypot(du, found.uv[:, None, 1] - centres[None, :, 1])
+    near = dist.argmin(1)
+    close = dist.min(1) < 1.0
+    assert close.sum() > 0.8 * len(centres)
+    offset = np.stack([du[close, near[close]], found.uv[close, 1] - centres[near[close], 1]], 1)
+    assert np.abs(np.median(offset, axis=0)).max() < 0.05
+
+
 def test_matches_keep_what_fits_the_odometry_and_tracks_drop_contradictions():
     from cylsfm.odometry.bundle.features import Features
     from cylsfm.odometry.bundle.matching import epipolar_angles, match_pair, tracks_of
@@ -236,6 +268,83 @@ def test_matches_keep_what_fits_the_odometry_and_tracks_drop_contradictions():
     assert sorted(good.frame.tolist()) == [0, 1, 2] and good.points == 1
     bad = tracks_of({(0, 1): np.array([[0, 0], [1, 1]]), (1, 2): np.array([[0, 0], [1, 0]])}, bearings)
     assert bad.points == 0
+
+
+def _brute_force_guided(da, db, ba, bb, rel, ratio, tau):
+    """What guided matching means, pair by pair: a keypoint of ``b`` may match one of ``a`` when it lies
+    within ``tau`` of that keypoint's epipolar half-plane (any, near the direction of travel); the ratio
+    is to the nearer of the second candidate and the match's nearest look-alike in ``b``."""
+    rot, t = rel[:3, :3], rel[:3, 3] / np.linalg.norm(rel[:3, 3])
+    na, nb = np.cross(t, ba @ rot.T), np.cross(t, bb)  # the half-planes' normals, |n| = sin(alpha)
+    off = np.abs(na @ bb.T) / np.linalg.norm(na, axis=1)[:, None]  # sin of the angle off a's plane
+    same_side = (na @ nb.T) >= 0
+    fits = (np.linalg.norm(nb, axis=1)[None] <= math.sin(tau)) | ((off <= math.sin(tau)) & same_side)
+    dist = ((da[:, None] - db[None]) ** 2).sum(-1)
+    dist[~fits] = np.inf
+    order = np.sort(dist, axis=1)
+    near = dist.argmin(1)
+    own = ((db[:, None] - db[None]) ** 2).sum(-1) + np.diag(np.full(len(db), np.inf))
+    second = np.minimum(order[:, 1], own.min(1)[near])
+    rows = np.arange(len(da))
+    ok = np.isfinite(order[:, 0]) & (order[:, 0] < ratio**2 * second) & (dist.argmin(0)[near] == rows)
+    found = np.stack([rows[ok], near[ok]], 1)
+    return found[epipolar_angles(ba[found[:, 0]], bb[found[:, 1]], rel) <= tau]
+
+
+def test_guided_matching_compares_only_what_lies_near_the_epipolar_half_plane():
+    """Blocks of keypoints sorted around the direction of travel give exactly the matches of comparing
+    every pair inside the band (all around the sphere, across the seam, near the epipoles); a look-alike
+    off the plane no longer hides a keypoint's match, as it does for the ratio over the whole frame, but a
+    keypoint that has look-alikes in its own frame is never taken for a match it resembles."""
+    from cylsfm.odometry.bundle.features import Features
+
+    rng = np.random.default_rng(4)
+    n = 400
+    ba = rng.normal(size=(n, 3))
+    ba[:6] = [[0.3, -0.2, 0.9]] * 3 + [[-0.3, 0.2, -0.9]] * 3  # at the epipoles of the travel below
+    ba += rng.normal(0, 1e-3, ba.shape)
+    ba /= np.linalg.norm(ba, axis=1, keepdims=True)
+    rel = np.eye(4)
+    rel[:3, :3] = rotation_y(np.asarray(0.4)) @ _rotation_x(0.1)
+    rel[:3, 3] = rel[:3, :3] @ -np.array([0.3, -0.2, 0.9])  # T_{a->b}: travelling along (0.3, -0.2, 0.9)
+    world = ba * rng.uniform(2, 10, (n, 1))
+    bb = world @ rel[:3, :3].T + rel[:3, 3]
+    bb = bb / np.linalg.norm(bb, axis=1, keepdims=True) + rng.normal(0, 0.01, bb.shape)  # half a degree off
+    bb /= np.linalg.norm(bb, axis=1, keepdims=True)
+    da = rng.random((n, 128)).astype(np.float32)
+    db = da + rng.normal(0, 0.05, da.shape).astype(np.float32)
+    # look-alikes: a copy of keypoint k's descriptor at a random bearing of b, for the first 150, and of
+    # keypoints 150-155 at b's epipoles, which lie on every half-plane
+    ahead = rel[:3, :3] @ np.array([0.3, -0.2, 0.9])  # the direction of travel in b's axes
+    alike = np.concatenate([rng.normal(size=(150, 3)), [ahead] * 3, [-ahead] * 3])
+    alike += rng.normal(0, 1e-3, alike.shape)
+    bb = np.concatenate([bb, alike / np.linalg.norm(alike, axis=1, keepdims=True)])
+    db = np.concatenate([db, da[:156] + rng.normal(0, 0.05, (156, 128)).astype(np.float32)])
+    # keypoints 156-165 of a: their matches not found in b, which has two windows alike instead (nearer to
+    # each other than to a's), one in the band and one elsewhere: a guess, never a match
+    lost = np.arange(156, 166)
+    base = da[lost].copy()
+    da[lost] = base + rng.normal(0, 0.1, base.shape).astype(np.float32)
+    db[lost] = rng.random((len(lost), 128)).astype(np.float32)
+    elsewhere = rng.normal(size=(len(lost), 3))
+    bb = np.concatenate([bb, bb[lost], elsewhere / np.linalg.norm(elsewhere, axis=1, keepdims=True)])
+    windows = np.concatenate([base, base]) + rng.normal(0, 0.01, (2 * len(lost), 128)).astype(np.float32)
+    db = np.concatenate([db, windows])
+    none_a, none_b = np.zeros((n, 2)), np.zeros((len(db), 2))
+    a, b = Features(none_a, da, none_a.astype(np.uint8)), Features(none_b, db, none_b.astype(np.uint8))
+    tau = math.radians(2.0)
+    found = match_pair(a, b, ba, bb, rel, 0.8, 2.0, block=16)
+    want = _brute_force_guided(da.astype(np.float64), db.astype(np.float64), ba, bb, rel, 0.8, tau)
+    assert {tuple(p) for p in found.tolist()} == {tuple(p) for p in want.tolist()}
+    right = found[:, 0] == found[:, 1]
+    assert right.mean() > 0.97 and right.sum() > 0.9 * n
+    # compared over the whole frame, a look-alike spoils the ratio: most of the first 150 are lost
+    dist = ((da[:, None].astype(np.float64) - db[None]) ** 2).sum(-1)
+    two = np.sort(dist, axis=1)[:, :2]
+    assert (two[:150, 0] < 0.64 * two[:150, 1]).mean() < 0.2
+    assert np.isin(np.arange(6, 150), found[right, 0]).mean() > 0.9
+    assert not np.isin(np.arange(150, 156), found[:, 0]).any()  # an epipole's look-alike competes with all
+    assert not np.isin(lost, found[:, 0]).any()
 
 
 def test_the_bundle_stage_corrects_a_poor_odometry_and_a_second_run_reuses_it(ckpt, tmp_path, monkeypatch):

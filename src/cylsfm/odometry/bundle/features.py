@@ -13,10 +13,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["WRAP", "Features", "detect"]
+__all__ = ["UPSAMPLING_SHIFT", "WRAP", "Features", "detect"]
 
 #: Columns taken from the other end on each side of a full panorama before detecting.
 WRAP = 24
+
+#: Where OpenCV's SIFT puts a keypoint, right of and below the blob's centre, in pixels. Its
+#: ``enable_precise_upscale`` has no shift but finds other keypoints, which measured worse at 1024x512
+#: (docs/results/bundle-adjustment.md).
+UPSAMPLING_SHIFT = 0.25
 
 
 @dataclass(frozen=True)
@@ -57,9 +62,10 @@ def detect(
     keypoints, descriptors = sift.detectAndCompute(grey, allowed)
     if descriptors is None or not keypoints:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros((0, 3), np.uint8))
-    # OpenCV's keypoints are in pixel indices (a blob centred on pixel 30 is found at about 30.24: the
-    # same quarter pixel in every frame, a common turn of every camera that relative poses never see)
-    uv = np.array([k.pt for k in keypoints], dtype=np.float64) - [pad, 0.0]
+    # OpenCV's keypoints are in pixel indices, but its doubled first octave puts every keypoint a quarter pixel
+    # right and down (a blob centred on pixel 30 is found at 30.25): a common turn across the columns, but
+    # a tilt of every bearing in the rows, taken off here (:data:`UPSAMPLING_SHIFT`)
+    uv = np.array([k.pt for k in keypoints], dtype=np.float64) - [pad + UPSAMPLING_SHIFT, UPSAMPLING_SHIFT]
     inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5)  # a band's keypoints are the frame's own, kept once
     uv = uv[inside]
     col = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)

@@ -24,7 +24,7 @@ import torch
 from .adjust import Observations
 from .features import Features
 
-__all__ = ["epipolar_angles", "match_pair", "relative_pose", "tracks_of"]
+__all__ = ["epipolar_angles", "match_pair", "own_nearest", "relative_pose", "tracks_of"]
 
 
 def epipolar_angles(b_i: np.ndarray, b_j: np.ndarray, rel: np.ndarray) -> np.ndarray:
@@ -50,22 +50,140 @@ def match_pair(
     rel: np.ndarray,
     ratio: float = 0.8,
     max_angle_deg: float = 2.0,
+    block: int = 256,
+    own_b: np.ndarray | None = None,
 ) -> np.ndarray:
     """Matches ``[K,2]`` (index into ``a``, index into ``b``) between two frames' features whose bearings
-    are ``bearings_a [Ka,3]``, ``bearings_b [Kb,3]``, guided by the odometry's ``rel`` ``T_{a->b}``."""
+    are ``bearings_a [Ka,3]``, ``bearings_b [Kb,3]``, guided by the odometry's ``rel`` ``T_{a->b}``.
+
+    Each keypoint of ``a`` is compared only with the keypoints of ``b`` that lie within ``max_angle_deg``
+    of its epipolar half-plane (the half-plane through the direction of travel where the point lies seen
+    from both frames). The nearest of those by descriptor is its match when it is clearly nearer
+    (Lowe's ``ratio``) than both the second nearest of those and the nearest look-alike of the match in
+    its own frame (``own_b``), and when ``a``'s keypoint is in turn the nearest of those that may match
+    it. The look-alike stands for the second nearest over the whole frame: without it, a keypoint whose
+    true match was not detected takes a look-alike that happens to lie in the band, and the tracks it
+    joins go wrong (on three rendered rides the APE rose 1.2-1.5x).
+
+    Sorting the keypoints by the angle of their half-plane around the direction of travel makes each
+    block of ``block`` consecutive keypoints of ``a`` meet only the few of ``b`` around it: a fraction of
+    the work of comparing every pair. A camera that barely moved has no epipolar plane: every pair is
+    then compared, and kept within ``max_angle_deg`` of the rotation alone.
+
+    Args:
+        own_b: :func:`own_nearest` of ``b``'s descriptors (computed here when not given: a ride's stage
+            computes it once a frame).
+    """
     if len(a) < 2 or len(b) < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    with torch.inference_mode():  # every descriptor distance at once (a matrix product)
-        dist = torch.cdist(torch.from_numpy(a.descriptors)[None], torch.from_numpy(b.descriptors)[None])[0]
-        best, nearest = dist.topk(2, dim=1, largest=False)  # [Ka,2]
-        back = dist.argmin(dim=0)  # [Kb]: each of b's nearest in a
+    tau = math.radians(max_angle_deg)
+    rot, t = rel[:3, :3], rel[:3, 3]
+    length = float(np.linalg.norm(t))
+    desc_a, desc_b = torch.from_numpy(a.descriptors), torch.from_numpy(b.descriptors)
+    sq_a, sq_b = (desc_a * desc_a).sum(1), (desc_b * desc_b).sum(1)
+    turned = torch.from_numpy(bearings_a @ rot.T)  # a's bearings in b's axes
+    near_b = torch.from_numpy(bearings_b)
+    planes = None if length < 1e-9 else _half_planes(turned, near_b, t / length, tau)
+    order = torch.arange(len(a)) if planes is None else torch.argsort(planes[0])
+    block = len(a) if planes is None else block  # no plane: one block, every pair
+    best = torch.full((len(a), 2), math.inf)
+    nearest = torch.zeros(len(a), dtype=torch.int64)
+    col_best = torch.full((len(b),), math.inf)
+    col_row = torch.full((len(b),), -1, dtype=torch.int64)
+    with torch.inference_mode():
+        for start in range(0, len(a), block):
+            rows = order[start : start + block]
+            cand, fits = _candidates(rows, planes, turned, near_b, tau)
+            if len(cand) == 0:
+                continue
+            dist = sq_a[rows, None] + sq_b[None, cand] - 2.0 * (desc_a[rows] @ desc_b[cand].T)
+            dist = torch.where(fits, dist, math.inf)  # squared distances; off the band: never
+            two = min(2, len(cand))
+            value, index = dist.topk(two, dim=1, largest=False)
+            best[rows, :two] = value
+            nearest[rows] = cand[index[:, 0]]
+            col_value, col_index = dist.min(dim=0)
+            better = col_value < col_best[cand]
+            col_best[cand[better]] = col_value[better]
+            col_row[cand[better]] = rows[col_index[better]]
     rows = torch.arange(len(a))
-    keep = (best[:, 0] < ratio * best[:, 1]) & (back[nearest[:, 0]] == rows)
-    if not bool(keep.any()):
-        return np.zeros((0, 2), dtype=np.int64)
-    found = torch.stack([rows[keep], nearest[keep, 0]], 1).numpy().astype(np.int64)
+    # Lowe's ratio on distances (squared here), a match seen alike from both sides
+    own = torch.from_numpy(own_nearest(b.descriptors) if own_b is None else own_b)
+    second = torch.minimum(best[:, 1], own[nearest])
+    keep = torch.isfinite(best[:, 0]) & (best[:, 0] < ratio * ratio * second)
+    keep &= col_row[nearest] == rows
+    found = torch.stack([rows[keep], nearest[keep]], 1).numpy().astype(np.int64)
     angles = epipolar_angles(bearings_a[found[:, 0]], bearings_b[found[:, 1]], rel)
-    return found[angles <= math.radians(max_angle_deg)]
+    return found[angles <= tau]
+
+
+def own_nearest(descriptors: np.ndarray, chunk: int = 1024) -> np.ndarray:
+    """Each descriptor's squared distance ``[K]`` to the nearest other of ``descriptors [K,D]`` (``inf``
+    for a lone one)."""
+    d = torch.from_numpy(descriptors)
+    sq = (d * d).sum(1)
+    out = torch.full((len(d),), math.inf)
+    with torch.inference_mode():
+        for start in range(0, len(d) if len(d) > 1 else 0, chunk):
+            dist = sq[start : start + chunk, None] + sq[None] - 2.0 * (d[start : start + chunk] @ d.T)
+            dist[torch.arange(len(dist)), torch.arange(start, start + len(dist))] = math.inf  # not itself
+            out[start : start + chunk] = dist.min(1).values
+    return out.numpy()
+
+
+def _half_planes(
+    turned: torch.Tensor, near_b: torch.Tensor, direction: np.ndarray, tau: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The angle (radians) of each keypoint's epipolar half-plane around the unit direction of travel
+    ``direction [3]``, for ``a``'s keypoints (bearings ``turned [Ka,3]`` in ``b``'s axes) and ``b``'s
+    (``near_b [Kb,3]``), and how far ``width [Kb]`` a half-plane may turn from ``b``'s own keypoint and
+    still pass within ``tau`` of it: a keypoint at an angle ``alpha`` from the direction of travel lies
+    within ``tau`` of a half-plane turned by ``psi`` when ``sin(alpha) |sin(psi)| <= sin(tau)``."""
+    axis = _travel_basis(direction)  # two directions across the travel, then along it
+    in_a, in_b = turned @ axis, near_b @ axis
+    psi_a, psi_b = torch.atan2(in_a[:, 1], in_a[:, 0]), torch.atan2(in_b[:, 1], in_b[:, 0])
+    sin_alpha = torch.sqrt(torch.clamp(1.0 - in_b[:, 2] ** 2, min=0.0))
+    width = torch.asin(torch.clamp(math.sin(tau) / torch.clamp(sin_alpha, min=1e-12), max=1.0))
+    width = torch.where(
+        sin_alpha <= math.sin(tau), torch.full_like(width, 4.0), width
+    )  # near the epipole: any
+    return psi_a, psi_b, width
+
+
+def _candidates(
+    rows: torch.Tensor, planes: tuple | None, turned: torch.Tensor, near_b: torch.Tensor, tau: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The keypoints ``cand [C]`` of ``b`` that some of ``a``'s keypoints ``rows [R]`` may match, and which
+    of them each may: ``fits [R,C]`` (bool). Without half-planes (a camera that barely moved), every
+    keypoint within ``tau`` of the rotated bearing."""
+    if planes is None:
+        return torch.arange(len(near_b)), (turned[rows] @ near_b.T) >= math.cos(tau)
+    psi_a, psi_b, width = planes
+    centre = _circular_mean(psi_a[rows])
+    spread = _wrapped(psi_a[rows] - centre).abs().max()
+    cand = torch.nonzero(_wrapped(psi_b - centre).abs() <= spread + width)[:, 0]
+    return cand, _wrapped(psi_b[cand][None] - psi_a[rows][:, None]).abs() <= width[cand][None]
+
+
+def _travel_basis(direction: np.ndarray) -> torch.Tensor:
+    """``[3,3]`` columns: two unit directions across the unit ``direction [3]`` and the direction itself."""
+    side = (
+        np.cross(direction, [0.0, 1.0, 0.0])
+        if abs(direction[1]) < 0.9
+        else np.cross(direction, [1.0, 0.0, 0.0])
+    )
+    side /= np.linalg.norm(side)
+    return torch.from_numpy(np.stack([side, np.cross(direction, side), direction], 1))
+
+
+def _wrapped(angle: torch.Tensor) -> torch.Tensor:
+    """Angles (radians) brought into ``[-pi, pi)``."""
+    return torch.remainder(angle + math.pi, 2.0 * math.pi) - math.pi
+
+
+def _circular_mean(angle: torch.Tensor) -> torch.Tensor:
+    """The mean direction of angles (radians)."""
+    return torch.atan2(torch.sin(angle).mean(), torch.cos(angle).mean())
 
 
 def relative_pose(b_i: np.ndarray, b_j: np.ndarray, rel: np.ndarray, scale: float) -> np.ndarray:

@@ -35,7 +35,7 @@ from ...geometry.bearings import pixel_bearings
 from ...runtime import fingerprint, progress_bar
 from .adjust import BundleSettings, bundle_adjust
 from .features import Features, detect
-from .matching import match_pair, relative_pose, tracks_of
+from .matching import match_pair, own_nearest, relative_pose, tracks_of
 
 if TYPE_CHECKING:
     from ..job import Job
@@ -50,8 +50,9 @@ class RideBundleSettings:
 
     Attributes:
         span: each frame is matched with the next ``span`` frames.
-        features: SIFT keypoints a frame at most (the strongest; at 1024x512, 4000 against 2000 took
-            one ride's APE from 0.133 to 0.084 m, at twice the stage's time).
+        features: SIFT keypoints a frame at most (the strongest). At 1024x512 about 5500 are found and
+            all are kept (the strongest 4000 measured worse, docs/results/bundle-adjustment.md); at
+            512x128 about 1000.
         contrast: SIFT's contrast threshold (lower finds more, weaker keypoints; OpenCV's default is 0.04,
             COLMAP's about 0.02 in OpenCV's terms). 0.01 measured best at 512x128 (finer steps); the
             ``features`` strongest are kept, so on well-textured frames it rarely binds.
@@ -63,7 +64,7 @@ class RideBundleSettings:
     """
 
     span: int = 4
-    features: int = 4000
+    features: int = 8000
     contrast: float = 0.01
     ratio: float = 0.8
     max_epipolar_deg: float = 2.0
@@ -122,12 +123,20 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
     camera = job.plan.camera  # the frames' own
     feats, bearings = _features(job, settings, len(c2w))
     clock = {"features": time.perf_counter() - started}
+    own = [own_nearest(f.descriptors) for f in feats]  # each keypoint's look-alike in its own frame
     matches = {}
     pairs = [(i, j) for i in range(len(c2w)) for j in range(i + 1, min(len(c2w), i + 1 + settings.span))]
     for i, j in [*pairs, *loops]:
         rel = invert(c2w[j]) @ c2w[i]  # T_{i->j}
         matches[(i, j)] = match_pair(
-            feats[i], feats[j], bearings[i], bearings[j], rel, settings.ratio, settings.max_epipolar_deg
+            feats[i],
+            feats[j],
+            bearings[i],
+            bearings[j],
+            rel,
+            settings.ratio,
+            settings.max_epipolar_deg,
+            own_b=own[j],
         )
     obs = tracks_of(matches, bearings)
     clock["matching"] = time.perf_counter() - started - sum(clock.values())

@@ -10,6 +10,7 @@ Usage::
     python experiments/bundle_peer.py CHECKPOINT OUT [--rides 1 8 15] [--frames 150] [--width 512]
     python experiments/bundle_peer.py CHECKPOINT OUT --equirect [--width 1024]
 
+``--drift`` only adds each saved result's drift over windows of frames (:func:`drift`) to the table.
 ``--keep-colmap`` reruns cylsfm only, keeping the COLMAP rows that ``OUT/table.json`` already has (a ride
 without one runs COLMAP too).
 
@@ -179,6 +180,59 @@ def run_cylsfm(seq: Path, checkpoint: str, out: Path, bundle: bool) -> dict:
     }
 
 
+def drift(truth: np.ndarray, c2w: np.ndarray, apart: int = 60, stretch: int = 30) -> dict:
+    """How a ride ``c2w [n,4,4]`` drifts from the ``truth [n,4,4]`` (the same frames): the RMS error of the
+    relative pose's rotation and of its direction of travel (degrees) over frames ``apart``, and the
+    standard deviation of each ``stretch``-frame stretch's length over the truth's, divided by their
+    median (the scale's drift)."""
+    from cylsfm.geometry import invert
+
+    def relative(poses: np.ndarray, i: int, gap: int) -> np.ndarray:
+        return invert(poses[i]) @ poses[i + gap]
+
+    rot, direction = [], []
+    for i in range(len(c2w) - apart):
+        true, est = relative(truth, i, apart), relative(c2w, i, apart)
+        off = (invert(true) @ est)[:3, :3]
+        rot.append(np.degrees(np.arccos(np.clip((np.trace(off) - 1) / 2, -1, 1))))
+        cos = true[:3, 3] @ est[:3, 3] / max(np.linalg.norm(true[:3, 3]) * np.linalg.norm(est[:3, 3]), 1e-12)
+        direction.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    scale = [
+        np.linalg.norm(relative(c2w, i, stretch)[:3, 3])
+        / max(np.linalg.norm(relative(truth, i, stretch)[:3, 3]), 1e-9)
+        for i in range(len(c2w) - stretch)
+    ]
+    scale = np.asarray(scale) / np.median(scale)
+    return {
+        f"drift_rot_deg_{apart}": float(np.sqrt(np.mean(np.square(rot)))),
+        f"drift_direction_deg_{apart}": float(np.sqrt(np.mean(np.square(direction)))),
+        f"scale_spread_{stretch}": float(np.std(scale)),
+    }
+
+
+def add_drift(out: Path, equirect: bool) -> None:
+    """Add :func:`drift` of every saved result (cylsfm's trajectories, COLMAP's largest model) to
+    ``OUT/table.json``, over the frames each placed."""
+    table_file = out / "table.json"
+    table = json.loads(table_file.read_text())
+    for name, rows in table.items():
+        seq = out / ("equirect_frames" if equirect else "cylinder") / name
+        _, truth = read_tum(seq / "poses.txt")
+        for method, row in rows.items():
+            if method.startswith("COLMAP"):
+                sparse = out / "colmap" / name / "sparse"
+                if not sparse.is_dir() or not any(sparse.iterdir()):
+                    continue
+                index, c2w = frame_poses(max(_models(sparse).values(), key=lambda r: r.num_reg_frames()))
+            else:
+                kind = "bundle" if "--bundle" in method else "refine"
+                _, c2w = read_tum(out / kind / name / "trajectory.txt")
+                index = np.arange(len(c2w))
+            row.update(drift(truth[index], c2w))
+            print(name, method, {k: round(v, 4) for k, v in row.items() if k.startswith(("drift", "scale"))})
+    table_file.write_text(json.dumps(table, indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoint")
@@ -190,12 +244,16 @@ def main() -> None:
     parser.add_argument(
         "--remeasure", action="store_true", help="only add COLMAP's steps without misplaced frames"
     )
+    parser.add_argument("--drift", action="store_true", help="only add the drift of each saved result")
     parser.add_argument(
         "--keep-colmap", action="store_true", help="run cylsfm only; keep COLMAP's rows already in the table"
     )
     args = parser.parse_args()
     if args.remeasure:
         remeasure(args.out)
+        return
+    if args.drift:
+        add_drift(args.out, args.equirect)
         return
     table_file = args.out / "table.json"
     table = json.loads(table_file.read_text()) if table_file.is_file() else {}

@@ -1,11 +1,13 @@
 """Matches between the frames of a ride, guided by its odometry, and the tracks they make.
 
-Two frames' keypoints are matched by their descriptors (the nearest neighbour, clearly nearer than the
-second: Lowe's ratio, and mutual); a match is kept only when it fits the odometry's relative pose: its
-two bearings lie on one epipolar plane (``b_j . (t x R b_i) = 0`` for ``p_j = R p_i + t``), to within an
-angle, which holds across the seam and behind the camera alike. A camera that barely moved has no
-epipolar plane: its matches must then agree with the rotation alone. Matches chain into tracks (a
-union of every pair's matches); a track that would see two keypoints of one frame is dropped.
+Two frames' keypoints are matched by their descriptors, but a keypoint is compared only with the keypoints
+of the other frame that fit the odometry's relative pose: those whose bearings lie within an angle of its
+epipolar half-plane (the plane through the direction of travel and the keypoint's bearing, ``b_j . (t x R
+b_i) = 0`` for ``p_j = R p_i + t``), which holds across the seam and behind the camera alike. The match is
+the nearest of those, clearly nearer than the second and than its own look-alike in its frame (Lowe's
+ratio), and mutual (:func:`match_pair`). A camera that barely moved has no epipolar plane: its matches must
+then agree with the rotation alone. Matches chain into tracks (a union of every pair's matches); a track
+that would see two keypoints of one frame is dropped.
 
 The odometry's relative pose is good enough to guide the matches (a match that fits it to 2 degrees), not
 to start a bundle adjustment from: a few degrees off a step near the start of a ride leave the adjustment

@@ -390,9 +390,12 @@ def test_the_bundle_stage_corrects_a_poor_odometry_and_a_second_run_reuses_it(ck
     again = cylsfm.odometry(seq, ckpt, tmp_path / "out", opt)
     assert "bundle adjustment" not in again.timings
     np.testing.assert_array_equal(again.c2w, first.c2w)
-    # killed during the adjustment (the tracking saved), then run again: the same trajectory
     from cylsfm.odometry.bundle import stage
 
+    monkeypatch.setattr(stage, "METHOD", stage.METHOD + 1)  # a newer method: adjusted again
+    assert "bundle adjustment" in cylsfm.odometry(seq, ckpt, tmp_path / "out", opt).timings
+    monkeypatch.undo()
+    # killed during the adjustment (the tracking saved), then run again: the same trajectory
     real = stage.bundle_adjust
 
     def killed(*args, **kwargs):

@@ -41,7 +41,11 @@ if TYPE_CHECKING:
     from ..job import Job
     from ..state import State
 
-__all__ = ["Bundled", "RideBundleSettings", "adjust_ride"]
+__all__ = ["METHOD", "Bundled", "RideBundleSettings", "adjust_ride"]
+
+#: The stage's method, in its fingerprint: raised when the same settings would give another result (2: guided
+#: matching, the quarter pixel taken off), so that a run's saved adjustment of an older method is done again.
+METHOD = 2
 
 
 @dataclass(frozen=True)
@@ -103,9 +107,9 @@ def adjust_ride(job: Job, state: State, steps: np.ndarray, loops: list[tuple[int
     of each accepted loop ``(i, j)`` are matched too, so that the adjustment holds the ride together where it
     comes back."""
     settings = job.settings.bundle_settings
-    # the settings and the odometry it starts from (other loops, another seed: adjusted again)
+    # the settings, the method and the odometry it starts from (other loops, another seed: adjusted again)
     seed = hashlib.sha256(steps.tobytes()).hexdigest()
-    key = fingerprint({"settings": asdict(settings), "seed": seed, "loops": sorted(loops)})
+    key = fingerprint({"settings": asdict(settings), "method": METHOD, "seed": seed, "loops": sorted(loops)})
     if state.bundle_key == key and len(state.bundled) == len(steps):
         saved = state.bundle_points
         return Bundled(

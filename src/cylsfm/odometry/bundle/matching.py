@@ -98,7 +98,7 @@ def match_pair(
             cand, fits = _candidates(rows, planes, turned, near_b, tau)
             if len(cand) == 0:
                 continue
-            dist = sq_a[rows, None] + sq_b[None, cand] - 2.0 * (desc_a[rows] @ desc_b[cand].T)
+            dist = _squared_distances(desc_a[rows], sq_a[rows], desc_b[cand], sq_b[cand])
             dist = torch.where(fits, dist, math.inf)  # squared distances; off the band: never
             two = min(2, len(cand))
             value, index = dist.topk(two, dim=1, largest=False)
@@ -127,10 +127,18 @@ def own_nearest(descriptors: np.ndarray, chunk: int = 1024) -> np.ndarray:
     out = torch.full((len(d),), math.inf)
     with torch.inference_mode():
         for start in range(0, len(d) if len(d) > 1 else 0, chunk):
-            dist = sq[start : start + chunk, None] + sq[None] - 2.0 * (d[start : start + chunk] @ d.T)
+            dist = _squared_distances(d[start : start + chunk], sq[start : start + chunk], d, sq)
             dist[torch.arange(len(dist)), torch.arange(start, start + len(dist))] = math.inf  # not itself
             out[start : start + chunk] = dist.min(1).values
     return out.numpy()
+
+
+def _squared_distances(
+    x: torch.Tensor, sq_x: torch.Tensor, y: torch.Tensor, sq_y: torch.Tensor
+) -> torch.Tensor:
+    """Squared distances ``[X,Y]`` between descriptors ``x [X,D]`` and ``y [Y,D]`` whose squared norms are
+    ``sq_x [X]``, ``sq_y [Y]`` (one matrix product)."""
+    return sq_x[:, None] + sq_y[None] - 2.0 * (x @ y.T)
 
 
 def _half_planes(
@@ -141,14 +149,12 @@ def _half_planes(
     (``near_b [Kb,3]``), and how far ``width [Kb]`` a half-plane may turn from ``b``'s own keypoint and
     still pass within ``tau`` of it: a keypoint at an angle ``alpha`` from the direction of travel lies
     within ``tau`` of a half-plane turned by ``psi`` when ``sin(alpha) |sin(psi)| <= sin(tau)``."""
-    axis = _travel_basis(direction)  # two directions across the travel, then along it
+    axis = torch.from_numpy(_travel_basis(direction))  # two directions across the travel, then along it
     in_a, in_b = turned @ axis, near_b @ axis
     psi_a, psi_b = torch.atan2(in_a[:, 1], in_a[:, 0]), torch.atan2(in_b[:, 1], in_b[:, 0])
     sin_alpha = torch.sqrt(torch.clamp(1.0 - in_b[:, 2] ** 2, min=0.0))
     width = torch.asin(torch.clamp(math.sin(tau) / torch.clamp(sin_alpha, min=1e-12), max=1.0))
-    width = torch.where(
-        sin_alpha <= math.sin(tau), torch.full_like(width, 4.0), width
-    )  # near the epipole: any
+    width[sin_alpha <= math.sin(tau)] = math.pi  # near the epipole: any half-plane
     return psi_a, psi_b, width
 
 
@@ -167,15 +173,11 @@ def _candidates(
     return cand, _wrapped(psi_b[cand][None] - psi_a[rows][:, None]).abs() <= width[cand][None]
 
 
-def _travel_basis(direction: np.ndarray) -> torch.Tensor:
+def _travel_basis(direction: np.ndarray) -> np.ndarray:
     """``[3,3]`` columns: two unit directions across the unit ``direction [3]`` and the direction itself."""
-    side = (
-        np.cross(direction, [0.0, 1.0, 0.0])
-        if abs(direction[1]) < 0.9
-        else np.cross(direction, [1.0, 0.0, 0.0])
-    )
+    side = np.cross(direction, [0.0, 1.0, 0.0] if abs(direction[1]) < 0.9 else [1.0, 0.0, 0.0])
     side /= np.linalg.norm(side)
-    return torch.from_numpy(np.stack([side, np.cross(direction, side), direction], 1))
+    return np.stack([side, np.cross(direction, side), direction], 1)
 
 
 def _wrapped(angle: torch.Tensor) -> torch.Tensor:
@@ -217,9 +219,7 @@ def relative_pose(b_i: np.ndarray, b_j: np.ndarray, rel: np.ndarray, scale: floa
         out[:3, :3] = Rotation.from_rotvec(x).as_matrix() @ rot0
         return out
     d0 = t0 / length
-    e1 = np.cross(d0, [0.0, 1.0, 0.0]) if abs(d0[1]) < 0.9 else np.cross(d0, [1.0, 0.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(d0, e1)
+    e1, e2, _ = _travel_basis(d0).T
 
     def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = d0 + x[3] * e1 + x[4] * e2

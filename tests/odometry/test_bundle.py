@@ -210,6 +210,30 @@ def test_features_are_found_across_the_seam_and_never_under_the_mask():
     assert len(masked) > 20 and not ((masked.uv[:, 0] > 100) & (masked.uv[:, 0] < 179)).any()
 
 
+def test_an_occluder_enters_no_descriptor_and_its_outline_gives_no_keypoint():
+    """An occluder moves with the camera: whatever it shows, the features are the same, and its outline
+    against the scene (which would follow the camera) gives none."""
+    from cylsfm.odometry.bundle.features import detect
+
+    def rgb(grey):
+        return np.repeat(grey[..., None], 3, axis=2)
+
+    rng = np.random.default_rng(3)
+    scene = np.kron((rng.random((16, 64)) * 255).astype(np.uint8), np.ones((4, 4), np.uint8))
+    mask = np.ones((64, 256), np.uint8)
+    mask[40:, 90:170] = 0  # a helmet's rim at the bottom of the frame
+    other = scene.copy()
+    other[mask == 0] = (rng.random(int((mask == 0).sum())) * 255).astype(np.uint8)
+    a, b = detect(rgb(scene), True, mask), detect(rgb(other), True, mask)
+    assert len(a) > 20
+    np.testing.assert_array_equal(a.uv, b.uv)
+    np.testing.assert_array_equal(a.descriptors, b.descriptors)
+    for y, x in ((44, 100), (48, 130), (52, 150)):
+        mask[y : y + 6, x : x + 6] = 1  # gaps in the mount, the scene seen through them
+    plain = np.full((64, 256), 60, np.uint8)  # nothing to see but the occluder's outline
+    assert len(detect(rgb(plain), True, mask, contrast=0.01)) == 0
+
+
 def test_keypoints_are_where_the_blobs_are_to_a_few_hundredths_of_a_pixel():
     """SIFT's keypoints in our pixel convention (integer values are pixel centres), without OpenCV's
     default quarter-pixel shift, which would tilt every bearing of a row."""

@@ -2,6 +2,11 @@
 weights) on each frame at its own resolution, in its own geometry, across the seam of a full panorama
 and never on an occluder of the mask.
 
+An occluder fixed to the camera (a helmet, a mount) moves with it: a keypoint on it, or on its outline
+against the scene, would be a point that follows the camera. Its pixels are painted one grey before
+detecting, so that nothing of it enters a descriptor, and a keypoint is kept only where the occluder is
+more than :data:`OUTLINE` times its size away, off the outline the grey makes.
+
 A full panorama's columns wrap: the frame is detected with a band of columns from its other end on each
 side (:data:`WRAP`), so that a corner on the seam is found like any other, and each keypoint found in a
 band is kept once, at its column in the frame.
@@ -13,10 +18,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["UPSAMPLING_SHIFT", "WRAP", "Features", "detect"]
+__all__ = ["OUTLINE", "UPSAMPLING_SHIFT", "WRAP", "Features", "detect"]
 
 #: Columns taken from the other end on each side of a full panorama before detecting.
 WRAP = 24
+
+#: A keypoint is kept only where the occluder is farther than this many times its size (OpenCV's
+#: ``KeyPoint.size``, the blob's diameter).
+OUTLINE = 1.5
 
 #: Where OpenCV's SIFT puts a keypoint, right of and below the blob's centre, in pixels. Its
 #: ``enable_precise_upscale`` has no shift but finds other keypoints, which measured worse at 1024x512
@@ -58,8 +67,18 @@ def detect(
     if pad:
         grey = np.concatenate((grey[:, -pad:], grey, grey[:, :pad]), 1)
         allowed = np.concatenate((allowed[:, -pad:], allowed, allowed[:, :pad]), 1)
+    clear = None  # each pixel's distance to the occluder
+    if not allowed.all():
+        grey = np.where(allowed > 0, grey, 128).astype(np.uint8)  # its content enters no descriptor
+        clear = cv2.distanceTransform(allowed, cv2.DIST_L2, 5)
     sift = cv2.SIFT_create(nfeatures=most, contrastThreshold=contrast)
     keypoints, descriptors = sift.detectAndCompute(grey, allowed)
+    if clear is not None and keypoints:  # off the occluder's outline
+        at = np.array([k.pt for k in keypoints]).round().astype(np.int64)
+        size = np.array([k.size for k in keypoints])
+        far = clear[np.clip(at[:, 1], 0, h - 1), np.clip(at[:, 0], 0, grey.shape[1] - 1)] > OUTLINE * size
+        keypoints = [k for k, ok in zip(keypoints, far, strict=True) if ok]
+        descriptors = descriptors[far]
     if descriptors is None or not keypoints:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros((0, 3), np.uint8))
     # OpenCV's keypoints are in pixel indices, but its doubled first octave puts every keypoint a quarter pixel

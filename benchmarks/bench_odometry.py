@@ -108,7 +108,10 @@ def worker(job: dict) -> dict:
     data, ckpt, amp = job.pop("data"), job.pop("ckpt"), job.pop("amp")
     if amp and "amp" not in inspect.signature(OdometrySettings).parameters:
         return {"networks": "fp32", "seconds": 0.0, "frames": 0, "timings": {}}
-    extra = {"amp": amp} if "amp" in inspect.signature(OdometrySettings).parameters else {}
+    params = inspect.signature(OdometrySettings).parameters
+    extra = {"amp": amp} if "amp" in params else {}
+    if "bundle" in params:  # the refinement's speed: the bundle adjustment (on with refine) left out
+        extra["bundle"] = False
     result = cylsfm.odometry(data, ckpt, out, OdometrySettings(device="cpu", progress=False, **extra, **job))
     from cylsfm.model import Predictor
 

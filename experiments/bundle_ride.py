@@ -60,7 +60,10 @@ def main() -> None:
     seq = scan_dataset(args.sequence)[0]
     t0 = time.perf_counter()
     odo = cylsfm.odometry(
-        seq.path, args.checkpoint, args.out, OdometrySettings(refine=args.refine, progress=False, loops=False)
+        seq.path,
+        args.checkpoint,
+        args.out,
+        OdometrySettings(refine=args.refine, progress=False, loops=False, bundle=False),
     )
     t1 = time.perf_counter()
     cam = seq.camera

@@ -234,7 +234,9 @@ def remeasure(out: Path) -> dict:
 
 
 def run_cylsfm(name: str, checkpoint: str, out: Path, refine: bool) -> dict:
-    result = cylsfm.odometry(DATA / name, checkpoint, out, OdometrySettings(progress=False, refine=refine))
+    result = cylsfm.odometry(
+        DATA / name, checkpoint, out, OdometrySettings(progress=False, refine=refine, bundle=False)
+    )
     assert result.metrics is not None
     ours = next(iter(result.metrics.values()))
     return {

@@ -36,7 +36,7 @@ def pairs_of(seq: Path, out: Path, checkpoint: str) -> list[dict]:
     """Every pair that passed the odometry's gates, with its inlier fraction, its true distance (metres),
     its rotation and translation errors (degrees, metres) and whether it is right."""
     loop = LoopSettings(min_inliers=0.0, support=1)
-    settings = OdometrySettings(progress=False, refine=True, loops=True, loop=loop)
+    settings = OdometrySettings(progress=False, refine=True, loops=True, loop=loop, bundle=False)
     result = cylsfm.odometry(seq, checkpoint, out, settings)
     _, gt = read_tum(seq / "poses.txt")
     kept = []

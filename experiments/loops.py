@@ -109,7 +109,12 @@ def measure(
 ) -> dict:
     depth_from = seq.parent if true_depth else None
     settings = OdometrySettings(
-        progress=False, refine=True, loops=True, depth_from=depth_from, steady_height=steady_height
+        progress=False,
+        refine=True,
+        loops=True,
+        depth_from=depth_from,
+        steady_height=steady_height,
+        bundle=False,
     )
     result = cylsfm.odometry(seq, checkpoint, out, settings)
     times, gt = read_tum(seq / "poses.txt")

@@ -103,7 +103,10 @@ def run(checkpoint: str, out: Path, variants: list[str]) -> dict:
             ride = rolled_copy(name, out / "rolled-data", seed=n) if rolled else DATA / name
             ride = occluded_copy(name, out / f"{occluder}-data", occluder) if occluder else ride
             result = cylsfm.odometry(
-                ride, checkpoint, out / variant / name, OdometrySettings(progress=False, **opts)
+                ride,
+                checkpoint,
+                out / variant / name,
+                OdometrySettings(progress=False, **{"bundle": False, **opts}),
             )
             per_ride.append(result.metrics)
             print(

@@ -142,3 +142,21 @@ def test_an_export_and_the_odometry_read_the_same_settings_from_the_same_options
         False,
     )
     assert json.dumps(str(s))  # printable
+
+
+def test_the_bundle_adjustment_comes_with_the_refinement_unless_turned_off():
+    from cylsfm.cli.odometry import ride_settings
+    from cylsfm.errors import InputError
+    from cylsfm.odometry import OdometrySettings
+
+    parser = build_parser()
+    for command in (["odometry", "ride", "--out", "o"], ["export", "colmap", "ride", "o"]):
+
+        def adjusts(*opts, command=command):
+            return ride_settings(parser.parse_args([*command, "--checkpoint", "c", *opts])).adjusts
+
+        assert adjusts("--refine") and adjusts("--bundle") and adjusts("--refine", "--bundle")
+        assert not adjusts() and not adjusts("--refine", "--no-bundle")
+    assert OdometrySettings(refine=True).adjusts and not OdometrySettings(refine=True, bundle=False).adjusts
+    with pytest.raises(InputError, match="bundle must be"):
+        OdometrySettings(bundle="yes")

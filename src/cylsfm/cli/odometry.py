@@ -91,12 +91,23 @@ def _closure_options(p: argparse.ArgumentParser) -> None:
         "corrects the scale's drift). Default: on for rides of at least 200 frames with a full-panorama model",
     )
     lp.add_argument("--no-loops", dest="loops", action="store_const", const=False, help="never close loops")
-    p.add_argument(
+    bp = p.add_mutually_exclusive_group()
+    bp.add_argument(
         "--bundle",
-        action="store_true",
+        dest="bundle",
+        action="store_const",
+        const=True,
+        default="auto",
         help="after the loops, adjust the poses together with sparse points: SIFT features of every frame at "
         "its own resolution, matched with the next frames under the odometry's guidance, triangulated and "
-        "bundle-adjusted with the odometry's steps as priors (its scale kept)",
+        "bundle-adjusted with the odometry's steps as priors (its scale kept). Default: on with --refine",
+    )
+    bp.add_argument(
+        "--no-bundle",
+        dest="bundle",
+        action="store_const",
+        const=False,
+        help="never adjust (the refined steps)",
     )
 
 

@@ -32,8 +32,8 @@ Files in ``OUT``::
     odometry.json            frames, unit, scale, seconds and where they went, the loops, the run's
                              settings and their fingerprint (what exports check a given run against)
     depth/FRAME.npy          with depth maps asked for: each frame's depth (the view the network sees)
-    points.ply               with bundle: the triangulated points, coloured (world and unit of the trajectory)
-    points.npz               with bundle: those points with their tracks (the keypoints that saw them)
+    points.ply               bundle-adjusted: the triangulated points, coloured (world and unit of the trajectory)
+    points.npz               bundle-adjusted: those points with their tracks (the keypoints that saw them)
     .odometry-state.npz      progress: a killed run given the same arguments continues from it
 
 The module is callable: ``cylsfm.odometry(INPUT, CHECKPOINT, OUT, OdometrySettings(refine=True))`` is

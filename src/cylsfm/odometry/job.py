@@ -205,7 +205,7 @@ def _identity(
         "steady_height": opt.steady_height,
         "loops": opt.loops,
         "loop": asdict(opt.loop),
-        "bundle": asdict(opt.bundle_settings) if opt.bundle else False,
+        "bundle": asdict(opt.bundle_settings) if opt.adjusts else False,
         "version": __version__,
     }
 

@@ -84,7 +84,7 @@ def run_job(job: Job, started: float | None = None) -> OdometryResult:
         timings["pose graph"] = time.perf_counter() - t
     seed = closed if closed is not None else odometry_steps
     closing = [(lp.i, lp.j) for lp in loops or [] if lp.accepted]
-    bundled = adjust_ride(job, state, seed, closing) if opt.bundle else None
+    bundled = adjust_ride(job, state, seed, closing) if opt.adjusts else None
     if bundled is not None and bundled.fresh:
         state.bundled, state.bundle_summary, state.bundle_key = (
             list(bundled.steps),

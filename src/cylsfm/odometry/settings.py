@@ -58,7 +58,7 @@ class OdometrySettings:
         loop: how loops are looked for and accepted.
         bundle: after the loops, adjust the poses together with sparse points triangulated from SIFT
             features matched across frames (:mod:`~cylsfm.odometry.bundle`), seeded and held by the
-            odometry.
+            odometry: ``True``, ``False``, or ``"auto"``: with ``refine`` (see :attr:`adjusts`).
         bundle_settings: how.
 
     Raises:
@@ -84,7 +84,7 @@ class OdometrySettings:
     mask: str | os.PathLike[str] | bool | None = None
     loops: bool | str = "auto"
     loop: LoopSettings = field(default_factory=LoopSettings)
-    bundle: bool = False
+    bundle: bool | str = "auto"
     bundle_settings: RideBundleSettings = field(default_factory=RideBundleSettings)
 
     def __post_init__(self) -> None:
@@ -102,8 +102,15 @@ class OdometrySettings:
             raise InputError("mask: give the mask image's path, None (a sequence's own) or False (none)")
         if not (self.loops in (True, False) or self.loops == "auto"):
             raise InputError(f"loops must be True, False or 'auto', got {self.loops!r}")
+        if not (self.bundle in (True, False) or self.bundle == "auto"):
+            raise InputError(f"bundle must be True, False or 'auto', got {self.bundle!r}")
         if self.depth_from is not None and not self.refine:
             raise InputError("depth_from gives the refinement its depth: it needs refine=True (--refine)")
+
+    @property
+    def adjusts(self) -> bool:
+        """Whether the bundle adjustment runs: asked for, or ``"auto"`` with ``refine``."""
+        return self.bundle is True or (self.bundle == "auto" and self.refine)
 
     @property
     def find_mount(self) -> bool:

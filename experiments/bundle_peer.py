@@ -21,7 +21,7 @@ pinhole views of 90 degrees, 320 pixels square, sequential matching with 5 frame
 
 Per ride, one run each, one after the other (so that they share the machine alike), each from nothing:
 
-1. ``cylsfm odometry --refine`` (loops off: the rides do not come back);
+1. ``cylsfm odometry --refine --no-bundle`` (loops off: the rides do not come back);
 2. ``cylsfm odometry --refine --bundle``;
 3. COLMAP.
 
@@ -261,7 +261,9 @@ def main() -> None:
         name = f"seq_{index:03d}"
         seq = rendered_ride(args.out, index, args.frames, args.width, args.equirect)
         rows = table.setdefault(name, {})
-        rows["cylsfm --refine"] = run_cylsfm(seq, args.checkpoint, args.out / "refine" / name, False)
+        rows["cylsfm --refine --no-bundle"] = run_cylsfm(
+            seq, args.checkpoint, args.out / "refine" / name, False
+        )
         rows["cylsfm --refine --bundle"] = run_cylsfm(seq, args.checkpoint, args.out / "bundle" / name, True)
         if args.keep_colmap and any(k.startswith("COLMAP") for k in rows):
             pass

@@ -1,6 +1,6 @@
 """The peer a user with 360-degree video would otherwise run: COLMAP's structure from motion on the
 benchmark's held-out test rides, as panoramas (a rig of virtual pinhole views per frame), against
-``cylsfm odometry`` and ``cylsfm odometry --refine`` on the same rides: the commands and figures behind
+``cylsfm odometry`` and ``cylsfm odometry --refine --no-bundle`` on the same rides: the commands and figures behind
 RESULTS.md's COLMAP table.
 
 Usage::
@@ -225,7 +225,7 @@ def remeasure(out: Path) -> dict:
         rows["COLMAP (panorama rig)"].update(_colmap_measures(seq, models, n))
         for method, file in (
             ("cylsfm odometry", out / "network" / name / "trajectory.txt"),
-            ("cylsfm odometry --refine", out / "refine" / name / "trajectory.txt"),
+            ("cylsfm odometry --refine --no-bundle", out / "refine" / name / "trajectory.txt"),
         ):
             if method in rows and file.is_file():
                 _, c2w = read_tum(file)
@@ -322,7 +322,7 @@ def main() -> None:
         rows = {"COLMAP (panorama rig)": run_colmap(seq, args.out / "colmap" / name, n, args)}
         print(name, "COLMAP", rows["COLMAP (panorama rig)"], flush=True)
         if not args.skip_cylsfm:
-            for label, refine in (("cylsfm odometry", False), ("cylsfm odometry --refine", True)):
+            for label, refine in (("cylsfm odometry", False), ("cylsfm odometry --refine --no-bundle", True)):
                 folder = args.out / ("refine" if refine else "network") / name
                 shutil.rmtree(folder, ignore_errors=True)  # timed from scratch, not resumed
                 rows[label] = run_cylsfm(name, args.checkpoint, folder, refine)

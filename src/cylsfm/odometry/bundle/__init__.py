@@ -1,5 +1,6 @@
-"""The bundle adjustment of a ride (``cylsfm odometry --bundle``): its poses and sparse points adjusted
-together to the bearings of keypoints seen across many frames, seeded and held by the odometry.
+"""The bundle adjustment of a ride (``cylsfm odometry --refine``: on by default; ``--no-bundle``): its
+poses and sparse points adjusted together to the bearings of keypoints seen across many frames, seeded
+and held by the odometry.
 
 One module a job, in the order they run: :mod:`.features` (SIFT on every frame, across the seam, off the
 mask), :mod:`.matching` (matches guided by the odometry's epipolar planes, tracks), :mod:`.adjust` (the

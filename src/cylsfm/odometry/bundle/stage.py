@@ -1,6 +1,6 @@
-"""The bundle-adjustment stage of :func:`cylsfm.odometry` (``bundle=True``, ``--bundle``): after the loops
-are closed, every frame's SIFT features at its own resolution and in its own geometry (off the mask),
-matches between each frame and the next few guided by the odometry, tracks, and
+"""The bundle-adjustment stage of :func:`cylsfm.odometry` (by default with ``refine``; ``--no-bundle``):
+after the loops are closed, every frame's SIFT features at its own resolution and in its own geometry
+(off the mask), matches between each frame and the next few guided by the odometry, tracks, and
 :func:`~cylsfm.odometry.bundle.adjust.bundle_adjust` of the poses and points, seeded and held by the
 odometry's steps (its scale kept: the scale stage then brings it to metres as before).
 

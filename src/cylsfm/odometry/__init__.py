@@ -32,7 +32,7 @@ Files in ``OUT``::
     odometry.json            frames, unit, scale, seconds and where they went, the loops, the run's
                              settings and their fingerprint (what exports check a given run against)
     depth/FRAME.npy          with depth maps asked for: each frame's depth (the view the network sees)
-    points.ply               bundle-adjusted: the triangulated points, coloured (world and unit of the trajectory)
+    points.ply               bundle-adjusted: the triangulated points, coloured (the trajectory's world, unit)
     points.npz               bundle-adjusted: those points with their tracks (the keypoints that saw them)
     .odometry-state.npz      progress: a killed run given the same arguments continues from it
 

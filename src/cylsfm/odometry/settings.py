@@ -110,7 +110,7 @@ class OdometrySettings:
     @property
     def adjusts(self) -> bool:
         """Whether the bundle adjustment runs: asked for, or ``"auto"`` with ``refine``."""
-        return self.bundle is True or (self.bundle == "auto" and self.refine)
+        return bool(self.refine) if self.bundle == "auto" else bool(self.bundle)
 
     @property
     def find_mount(self) -> bool:

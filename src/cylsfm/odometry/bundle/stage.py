@@ -44,7 +44,8 @@ if TYPE_CHECKING:
 __all__ = ["METHOD", "Bundled", "RideBundleSettings", "adjust_ride"]
 
 #: The stage's method, in its fingerprint: raised when the same settings would give another result (2: guided
-#: matching, the quarter pixel taken off; 3: no keypoint on an occluder's outline), so that a run's saved adjustment of an older method is done again.
+#: matching, the quarter pixel taken off; 3: no keypoint on an occluder's outline), so that a run's saved
+#: adjustment of an older method is done again.
 METHOD = 3
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -239,6 +240,10 @@ def test_sigterm_stops_odometry_like_ctrl_c_and_the_run_continues(ckpt, ride, tm
     monkeypatch.setattr(odometry_track, "CHUNK", 3)
     args = ["odometry", str(ride), "--checkpoint", str(ckpt), "--refine", "--device", "cpu", "--no-progress"]
     assert main([*args, "--out", str(tmp_path / "whole")]) == 0
+    said = capsys.readouterr().out  # --refine comes with the bundle adjustment, and says what it kept
+    assert re.search(
+        r"bundle adjustment: \d+ points from \d+ features a frame, \d+ of \d+ observations kept", said
+    )
     push, calls = Tracker.push, {"n": 0}
 
     def signalled_push(self, indices, images):

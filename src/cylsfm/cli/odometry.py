@@ -152,6 +152,13 @@ def run_odometry(args: argparse.Namespace) -> int:
         print(
             f"loops: {result.loops['verified']} candidate pairs verified, {result.loops['accepted']} accepted"
         )
+    if result.bundle is not None:
+        b = result.bundle
+        seconds = sum(v for k, v in b.items() if k.endswith("_seconds"))
+        print(
+            f"bundle adjustment: {b['points']:.0f} points from {b['features_per_frame']:.0f} features a frame, "
+            f"{b['kept']:.0f} of {b['observations']:.0f} observations kept, {seconds:.1f} s"
+        )
     if result.metrics:
         print("against the ground truth (APE: Sim(3)-aligned; metres, degrees):")
         _print_metrics(result.metrics)

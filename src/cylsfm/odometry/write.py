@@ -41,6 +41,8 @@ class OdometryResult:
         metrics: measures against the ground truth (``None`` without it), as in ``OUT/metrics.json``.
         timings: seconds per part of the work; ``seconds`` in all.
         loops: what the loop closure found (as ``odometry.json``'s ``loops``; ``None``: not looked for).
+        bundle: the bundle adjustment's counts and seconds (as ``odometry.json``'s ``bundle``; ``None``:
+            not adjusted).
         out: the output directory; ``depth``: its folder of depth maps in the trajectory's unit (``None``:
             none written).
         fingerprint: the fingerprint of the run's identity (:attr:`cylsfm.odometry.job.Job.identity`).
@@ -56,6 +58,7 @@ class OdometryResult:
     timings: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
     loops: dict[str, Any] | None = None
+    bundle: dict[str, float] | None = None
     out: Path | None = None
     depth: Path | None = None
     fingerprint: str = ""
@@ -138,6 +141,7 @@ def write_outputs(
         timings=timings,
         seconds=seconds,
         loops=summary_of_loops,
+        bundle=bundle,
         out=dest,
         depth=dest / "depth" if opt.save_depth_maps else None,
         fingerprint=job.fingerprint,

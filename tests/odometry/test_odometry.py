@@ -277,6 +277,27 @@ def round_ride(tmp_path_factory) -> Path:
     return _room_ride(tmp_path_factory.mktemp("data") / "round", poses)
 
 
+def _a_false_loop_is_not_confirmed_by_the_features(ride, ckpt, tmp_path, settings, result):
+    """Frames 10 and 30, across the circle, planted as an accepted loop at the same place: the adjustment's
+    features do not confirm it (no match), and the trajectory is the one without it."""
+    from cylsfm.odometry import run as odometry_run
+    from cylsfm.odometry.loops.loop import Loop
+
+    real = odometry_run.find_loops
+
+    def planted(job, state, steps):
+        search = real(job, state, steps)
+        return replace(search, loops=[*search.loops, Loop(10, 30, np.eye(4), 1.0, 1.0, (0.0, 0.0), 0.0)])
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(odometry_run, "find_loops", planted)
+        fooled = cylsfm.odometry(ride, ckpt, tmp_path / "planted", settings)
+    assert fooled.loops["accepted"] == result.loops["accepted"] + 1
+    assert fooled.bundle["loops_unconfirmed"] == 1
+    assert fooled.bundle["loops_confirmed"] == result.loops["accepted"]
+    np.testing.assert_allclose(fooled.c2w, result.c2w, atol=1e-9)
+
+
 def test_a_ride_that_comes_back_closes_its_loop(ckpt, round_ride, tmp_path):
     from cylsfm.odometry.loops import LoopSettings
 
@@ -306,6 +327,12 @@ def test_a_ride_that_comes_back_closes_its_loop(ckpt, round_ride, tmp_path):
     assert "loops:" in header and "accepted" in header
     summary = __import__("json").loads((out / "odometry.json").read_text())
     assert summary["loops"]["accepted"] == result.loops["accepted"]
+    # the bundle adjustment's features confirm every true loop; a planted false one is left out of it
+    assert (
+        result.bundle["loops_confirmed"] == result.loops["accepted"]
+        and result.bundle["loops_unconfirmed"] == 0
+    )
+    _a_false_loop_is_not_confirmed_by_the_features(round_ride, ckpt, tmp_path, settings, result)
     # continued from the state: the loops are not looked for again, the same trajectory comes out
     again = cylsfm.odometry(round_ride, ckpt, out, settings)
     np.testing.assert_allclose(again.c2w, result.c2w)

@@ -83,8 +83,14 @@ def run_job(job: Job, started: float | None = None) -> OdometryResult:
     if closed is not None:
         timings["pose graph"] = time.perf_counter() - t
     seed = closed if closed is not None else odometry_steps
-    closing = [(lp.i, lp.j) for lp in loops or [] if lp.accepted]
-    bundled = adjust_ride(job, state, seed, closing) if opt.adjusts else None
+    bundled = None
+    if opt.adjusts:  # from the odometry and the loops that its features confirm, closed again by the graph
+        accepted = [lp for lp in loops or [] if lp.accepted]
+
+        def close(kept: list) -> np.ndarray | None:  # the graph closed above, when every loop is kept
+            return closed if len(kept) == len(accepted) else closed_steps(odometry_steps, kept)
+
+        bundled = adjust_ride(job, state, odometry_steps, accepted, close)
     if bundled is not None and bundled.fresh:
         state.bundled, state.bundle_summary, state.bundle_key = (
             list(bundled.steps),

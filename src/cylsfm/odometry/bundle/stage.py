@@ -15,7 +15,7 @@ their tracks join the two visits and the adjustment holds the ride together wher
 whose two frames share too few matches (:func:`_confirms`) is not confirmed by the features: a place that
 only looks like another (the direct alignment can take a repeated facade for the same one). It is left
 out, and the adjustment starts from the ride closed by the other loops alone. A true revisit shares
-hundreds (342-637 on the loop ride at 512x128); a false loop accepted on a 1000-frame ride, 4.
+hundreds (352 and 649 on the loop ride at 512x128); a false loop accepted on a 1000-frame ride, 4.
 
 The result is kept in the run's state with the fingerprint of the stage's settings and of the steps it
 started from: a run continued or run again the same way adjusts nothing again; one killed during the
@@ -55,7 +55,7 @@ __all__ = ["METHOD", "Bundled", "RideBundleSettings", "adjust_ride"]
 METHOD = 4
 
 #: A loop is confirmed by at least ``min_matches`` matches, or by this share of the features of the poorer
-#: of its two frames: true revisits share 22-100% (128x32 room, 90 features a frame) and 34-62% (512x128,
+#: of its two frames: true revisits share 24-100% (128x32 room, 90 features a frame) and 34-63% (512x128,
 #: 1000), a false loop on a 1000-frame ride 0.4%.
 LOOP_SHARE = 0.2
 
@@ -132,7 +132,8 @@ def adjust_ride(
     """
     settings = job.settings.bundle_settings
     # the settings, the method and the odometry it starts from (other loops, another seed: adjusted again)
-    seed = hashlib.sha256(steps.tobytes()).hexdigest()
+    seed = hashlib.sha256(b"".join([steps.tobytes(), *(np.asarray(lp.pose).tobytes() for lp in loops)]))
+    seed = seed.hexdigest()
     pairs = sorted((lp.i, lp.j) for lp in loops)
     key = fingerprint({"settings": asdict(settings), "method": METHOD, "seed": seed, "loops": pairs})
     if state.bundle_key == key and len(state.bundled) == len(steps):

@@ -81,7 +81,7 @@ def match_pair(
     tau = math.radians(max_angle_deg)
     rot, t = rel[:3, :3], rel[:3, 3]
     length = float(np.linalg.norm(t))
-    desc_a, desc_b = torch.from_numpy(a.descriptors), torch.from_numpy(b.descriptors)
+    desc_a, desc_b = (torch.from_numpy(f.descriptors).float() for f in (a, b))
     sq_a, sq_b = (desc_a * desc_a).sum(1), (desc_b * desc_b).sum(1)
     turned = torch.from_numpy(bearings_a @ rot.T)  # a's bearings in b's axes
     near_b = torch.from_numpy(bearings_b)
@@ -122,7 +122,7 @@ def match_pair(
 def own_nearest(descriptors: np.ndarray, chunk: int = 1024) -> np.ndarray:
     """Each descriptor's squared distance ``[K]`` to the nearest other of ``descriptors [K,D]`` (``inf``
     for a lone one)."""
-    d = torch.from_numpy(descriptors)
+    d = torch.from_numpy(descriptors).float()
     sq = (d * d).sum(1)
     out = torch.full((len(d),), math.inf)
     with torch.inference_mode():

@@ -182,8 +182,8 @@ def export_colmap(
     settings is reused, a killed one continued). Writes ``OUT/images/``, ``OUT/sparse/0/``,
     ``OUT/transforms.json`` and ``OUT/sparse_pc.ply`` from the ride's frames, its trajectory and its points:
     with the bundle adjustment (``settings.adjusts``: by default with ``refine``), its triangulated points
-    with the keypoints that saw them; else points made from the depth (metres with ``settings.camera_height``, else the network's
-    units: the same unit as the trajectory).
+    with the keypoints that saw them; else points made from the depth (metres with
+    ``settings.camera_height``, else the network's units: the same unit as the trajectory).
     Returns a summary (``panoramas``, ``images``, ``points``, ``unit``).
 
     Raises:

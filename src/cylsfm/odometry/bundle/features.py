@@ -75,21 +75,21 @@ def detect(
         clear = cv2.distanceTransform(allowed, cv2.DIST_L2, 5)
     sift = cv2.SIFT_create(nfeatures=most, contrastThreshold=contrast)
     keypoints, descriptors = sift.detectAndCompute(grey, allowed)
-    if clear is not None and keypoints:  # off the occluder's outline
-        at = np.array([k.pt for k in keypoints]).round().astype(np.int64)
-        size = np.array([k.size for k in keypoints])
-        far = clear[np.clip(at[:, 1], 0, h - 1), np.clip(at[:, 0], 0, grey.shape[1] - 1)] > OUTLINE * size
-        keypoints = [k for k, ok in zip(keypoints, far, strict=True) if ok]
-        descriptors = descriptors[far]
     if descriptors is None or not keypoints:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros((0, 3), np.uint8))
+    found = np.array([k.pt for k in keypoints], dtype=np.float64)  # in the padded frame
+    keep = np.ones(len(found), dtype=bool)
+    if clear is not None:  # off the occluder's outline
+        at = np.round(found).astype(np.int64)
+        size = np.array([k.size for k in keypoints])
+        keep = clear[np.clip(at[:, 1], 0, h - 1), np.clip(at[:, 0], 0, grey.shape[1] - 1)] > OUTLINE * size
     # OpenCV's keypoints are in pixel indices, but its doubled first octave puts every keypoint a quarter pixel
     # right and down (a blob centred on pixel 30 is found at 30.25): a common turn across the columns, but
     # a tilt of every bearing in the rows, taken off here (:data:`UPSAMPLING_SHIFT`)
-    uv = np.array([k.pt for k in keypoints], dtype=np.float64) - [pad + UPSAMPLING_SHIFT, UPSAMPLING_SHIFT]
-    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5)  # a band's keypoints are the frame's own, kept once
-    uv = uv[inside]
+    uv = found - [pad + UPSAMPLING_SHIFT, UPSAMPLING_SHIFT]
+    keep &= (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5)  # a band's keypoints are the frame's own, kept once
+    uv = uv[keep]
     col = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
     row = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
-    described = np.clip(np.rint(descriptors[inside]), 0, 255).astype(np.uint8)  # whole numbers already
+    described = np.clip(np.rint(descriptors[keep]), 0, 255).astype(np.uint8)  # whole numbers already
     return Features(uv, described, np.asarray(rgb)[row, col].astype(np.uint8))

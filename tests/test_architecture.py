@@ -21,7 +21,7 @@ LAYERS: list[set[str]] = [
     {"model"},
     {"train", "evaluate", "export"},
     {"predict", "odometry", "inference"},
-    {"demo"},
+    {"demo", "rounds"},  # rounds: training over the odometry of its own rides
     {"cli"},
     {"__init__"},  # the package root: the public names, importing from below
 ]

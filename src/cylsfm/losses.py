@@ -43,7 +43,9 @@ __all__ = [
     "photometric_error",
     "second_order_smoothness",
     "second_order_terms",
+    "sfm_pose_term",
     "smoothness_terms",
+    "sparse_depth_term",
     "ssim_error",
     "view_synthesis_loss",
     "warp_sources",
@@ -176,6 +178,9 @@ class LossConfig:
         automask: ignore pixels whose error without warping is lower than with warping (static scene
             parts, objects moving with the camera).
         full_resolution: upsample every scale's disparity to the input size for the photometric term.
+        sfm_depth_weight: weight of :func:`sparse_depth_term` (the ride's adjusted points; 0: none).
+        sfm_pose_weight: weight of :func:`sfm_pose_term` (the pose network taught the adjusted poses).
+        sfm_synthesis: warp the sources with the ride's adjusted poses where it has them, not the predicted.
     """
 
     smooth_weight: float = 2.0
@@ -188,9 +193,18 @@ class LossConfig:
     min_reprojection: bool = False
     automask: bool = False
     full_resolution: bool = False
+    sfm_depth_weight: float = 0.0
+    sfm_pose_weight: float = 0.0
+    sfm_synthesis: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("smooth_weight", "image_smooth_weight", "explain_weight"):
+        for name in (
+            "smooth_weight",
+            "image_smooth_weight",
+            "explain_weight",
+            "sfm_depth_weight",
+            "sfm_pose_weight",
+        ):
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.ssim_weight <= 1:
@@ -423,3 +437,43 @@ def view_synthesis_loss(
     total = photometric + smooth + explain
     terms = {"photometric": photometric, "smooth": smooth, "explain": explain, "total": total}
     return LossOutput(total=total, terms=terms, warped=warped_log, error=error_log)
+
+
+# ----------------------------------------------------------------------------- the ride's own geometry
+def sparse_depth_term(disparity: Tensor, sparse: Tensor) -> Tensor:
+    """How far the depth is from the ride's adjusted points: per point, Cauchy's ``log(1 + (r / sigma)^2)``
+    of ``r = log(depth / point's depth)``, so that a point far off (a wrong match, a moving object) pulls
+    little; averaged over the points (0 without any).
+
+    Args:
+        disparity: ``[B,1,H,W]`` the finest disparity (1 / depth).
+        sparse: ``[B,2,H,W]``: the points' depth (0: no point) and relative standard deviation ``sigma``
+            (:meth:`cylsfm.data.geometry.RideGeometry.depth_map`).
+    """
+    check_shape(sparse, f"{disparity.shape[0]},2,{disparity.shape[2]},{disparity.shape[3]}", "sparse")
+    has = sparse[:, :1] > 0
+    if not bool(has.any()):
+        return disparity.new_zeros(())
+    log_depth = -torch.log(disparity.clamp(min=1e-6))
+    r = (log_depth - torch.log(sparse[:, :1].clamp(min=1e-6)))[has]
+    sigma = sparse[:, 1:][has].clamp(min=1e-3)
+    return torch.log1p((r / sigma) ** 2).mean()
+
+
+def sfm_pose_term(poses: Tensor, sfm_poses: Tensor, valid: Tensor) -> Tensor:
+    """How far the predicted poses are from the ride's adjusted ones: the translation's error over the
+    batch's mean adjusted step, plus the rotation's (``|R - R_sfm|_F / sqrt(2)``, about the angle in
+    radians), averaged over the valid pairs (0 without any).
+
+    Args:
+        poses: ``[B,S,4,4]`` predicted ``T_tgt_to_src``; ``sfm_poses``: the adjusted ones, in the depth's
+            unit; ``valid``: ``[B,S]`` 1 where the ride has its geometry.
+    """
+    check_shape(sfm_poses, ",".join(str(n) for n in poses.shape), "sfm_poses")
+    weight = valid.to(poses.dtype)
+    if not bool((weight > 0).any()):
+        return poses.new_zeros(())
+    step = (sfm_poses[..., :3, 3].norm(dim=-1) * weight).sum() / weight.sum()
+    t = (poses[..., :3, 3] - sfm_poses[..., :3, 3]).norm(dim=-1) / step.clamp(min=1e-6)
+    rot = (poses[..., :3, :3] - sfm_poses[..., :3, :3]).flatten(-2).norm(dim=-1) / 2**0.5
+    return ((t + rot) * weight).sum() / weight.sum()

@@ -20,6 +20,7 @@ FLAG_KEYS = {
     "batch_size": "batch_size",
     "max_steps": "max_steps",
     "minutes": "minutes",
+    "sfm_rounds": "sfm.rounds",
     "wrap": "model.wrap",
     "fov": "data.fov",
     "pose_head": "model.pose_head",
@@ -47,6 +48,13 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, help="steps to train (default 60000)")
     p.add_argument(
         "--minutes", type=float, help="wall-clock budget; stops with a checkpoint when spent (default: none)"
+    )
+    p.add_argument(
+        "--sfm-rounds",
+        type=int,
+        help="learn from the rides' own geometry: this many rounds of odometry with the bundle adjustment over "
+        "the training rides, each followed by training on with their adjusted points and poses as targets "
+        "(within the same budget; default 0: plain self-supervision)",
     )
     p.add_argument("--wrap", action=argparse.BooleanOptionalAction, default=None, help="wrap-around on/off")
     p.add_argument(
@@ -148,6 +156,21 @@ def run_train(args: argparse.Namespace) -> int:
         raise CylsfmError("no training data: pass --data ROOT (or data.root in --config)")
     if args.resume and args.overwrite:
         raise CylsfmError("--resume continues a run and --overwrite starts it again: give one")
+    if cfg.sfm.rounds > 0:
+        from ..rounds import train_rounds
+
+        done = train_rounds(
+            cfg, args.out, resume=args.resume, progress=not args.no_progress, overwrite=args.overwrite
+        )
+        for stage in done["stages"]:
+            more = (
+                f"to step {stage['steps']}" if stage["stage"] == "train" else f"{len(stage['rides'])} rides"
+            )
+            print(f"  {stage['stage']}: {more}, {stage['seconds'] / 60:.1f} min")
+        print(
+            f"trained to step {done['steps']} in rounds ({done['stopped']}) in {done['seconds'] / 60:.1f} min"
+        )
+        return 0
     summary = train(
         cfg, args.out, resume=args.resume, progress=not args.no_progress, overwrite=args.overwrite
     )

@@ -27,6 +27,7 @@ from ..geometry import Camera, relative_pose
 from .augment import AugmentConfig
 from .cache import FrameCache, available_memory_bytes
 from .format import DatasetError, DatasetWarning, load_depth, load_image, load_mask
+from .geometry import RideGeometry, load_geometry
 from .index import SnippetIndex, build_index
 from .sample import NUM_SCALES, build_sample, camera_class, camera_of, check_size, intrinsics_pyramid
 from .static import StaticFilter
@@ -62,6 +63,9 @@ class SampleOptions:
             frame, of the panoramas' aspect ratio (resampled to their size): it multiplies each sequence's
             own ``mask.png`` and, being part of each sample, follows the augmentation (a mirrored sample has
             a mirrored mask).
+        geometry: a folder with the rides' own adjusted geometry, one :func:`cylsfm.odometry` output per
+            ride named as the ride (:mod:`cylsfm.data.geometry`): each sample then has ``"sfm_depth"``,
+            ``"sfm_pose"`` and ``"sfm_valid"``. A ride without its folder gives no target (all invalid).
 
     Raises:
         InputError: for an invalid ``size`` or ``cache``; a ``ValueError`` too.
@@ -72,6 +76,7 @@ class SampleOptions:
     ground_truth: bool = True
     cache: bool | str = False
     mask: str | os.PathLike[str] | None = None
+    geometry: str | os.PathLike[str] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "size", check_size(self.size))
@@ -96,6 +101,10 @@ class SequenceDataset(Dataset):
       (metres); present when every used sequence has ``poses.txt``;
     - ``"mask"``: ``float32 [1,H,W]`` in ``{0, 1}``, 1 = pixel to use; present when any used sequence has
       ``mask.png`` or ``options.mask`` is given (sequences without get all ones);
+    - ``"sfm_depth"``: ``float32 [2,H,W]``, with ``options.geometry``: the ride's adjusted points seen by the
+      target, channel 0 their depth in the ride's unit (0 = none), channel 1 its relative standard deviation;
+      ``"sfm_pose"``: ``float32 [S,4,4]`` the adjusted ``T_tgt_to_src`` per source, in the ride's unit;
+      ``"sfm_valid"``: ``float32 [S]``, 1 where the ride has its geometry (else 0, the pose the identity);
     - ``"sequence"``: sequence name; ``"frame"``: the target's frame name; ``"index"``: the sample's index.
 
     Use :func:`camera_of` to get the (possibly augmented) camera of a sample or a batch. With an index
@@ -134,6 +143,7 @@ class SequenceDataset(Dataset):
         self._bad_targets: set[tuple[int, int]] = set()
         self._mask_cache: dict[int, np.ndarray] = {}
         self.frame_cache = self._frame_cache(options.cache) if len(index) else None
+        self.geometry = self._geometry(options.geometry)
 
     # ------------------------------------------------------------------ building
     def _resized_cameras(self) -> list[Camera]:
@@ -162,6 +172,23 @@ class SequenceDataset(Dataset):
         if cache == "auto" and free is not None and FrameCache.nbytes(len(keys), shape) > free // 4:
             return None
         return FrameCache(keys, shape, self._decode)
+
+    def _geometry(self, folder: str | os.PathLike[str] | None) -> dict[int, RideGeometry | None] | None:
+        """Each used sequence's adjusted geometry from ``folder/<its name>`` (``None`` where it has none),
+        or ``None`` without a folder."""
+        if folder is None:
+            return None
+        root = Path(folder)
+        if not root.is_dir():
+            raise DatasetError(f"{root}: no such folder of the rides' geometry")
+        out: dict[int, RideGeometry | None] = {}
+        for s in self.index.used:
+            seq = self.sequences[s]
+            ride = root / seq.name
+            if not ride.resolve().is_relative_to(root.resolve()):
+                raise DatasetError(f"{root}: the ride {seq.name!r} names a folder outside it")
+            out[s] = load_geometry(ride, len(seq.images), seq.camera) if ride.is_dir() else None
+        return out
 
     def _decode(self, s: int, f: int) -> np.ndarray:
         """Frame ``f`` of sequence ``s`` as ``uint8 [H,W,3]`` at the dataset's size."""
@@ -227,10 +254,22 @@ class SequenceDataset(Dataset):
         depth = self._target_depth(s, tgt, size) if self.has_depth else None
         mask = self._sequence_mask(s, size) if self.has_mask else None
         pose_gt = None
+        src = [int(f) for k, f in enumerate(frames) if k != self.center]
         if self.has_pose:
             c2w = torch.from_numpy(seq.poses)
-            src = [int(f) for k, f in enumerate(frames) if k != self.center]
             pose_gt = relative_pose(c2w[tgt].expand(len(src), 4, 4), c2w[src]).numpy()
+        sfm = None
+        if self.geometry is not None:
+            ride = self.geometry.get(s)
+            if ride is None:
+                w, h = camera.size
+                sfm = (
+                    np.zeros((2, h, w), np.float32),
+                    np.tile(np.eye(4), (len(src), 1, 1)),
+                    np.zeros(len(src)),
+                )
+            else:
+                sfm = (ride.depth_map(tgt, camera.size), ride.relative(tgt, src), np.ones(len(src)))
         return build_sample(
             np.stack(images),
             camera,
@@ -241,6 +280,7 @@ class SequenceDataset(Dataset):
             depth=depth,
             mask=mask,
             pose_gt=pose_gt,
+            sfm=sfm,
         )
 
     def _target_depth(self, s: int, tgt: int, size: tuple[int, int] | None) -> np.ndarray:

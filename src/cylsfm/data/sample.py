@@ -113,6 +113,7 @@ def build_sample(
     depth: np.ndarray | None = None,
     mask: np.ndarray | None = None,
     pose_gt: np.ndarray | None = None,
+    sfm: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Assemble (and augment) a sample from decoded frames.
 
@@ -124,6 +125,8 @@ def build_sample(
         depth: target depth ``float32 [H,W]`` (metres, 0 = unknown), or ``None``.
         mask: ``float32 [H,W]`` in ``{0, 1}``, or ``None``.
         pose_gt: ``float64 [L-1,4,4]`` ``T_tgt_to_src`` per source, or ``None``.
+        sfm: the ride's own geometry, or ``None``: ``(depth [2,H,W], T_tgt_to_src [L-1,4,4], valid [L-1])``
+            (:meth:`~cylsfm.data.geometry.RideGeometry.depth_map`, ``relative``); augmented with the rest.
 
     Returns:
         The sample dictionary (keys documented in :class:`~cylsfm.data.SequenceDataset`).
@@ -136,10 +139,11 @@ def build_sample(
     depth_t = None if depth is None else torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None]
     mask_t = None if mask is None else torch.from_numpy(np.ascontiguousarray(mask, dtype=np.float32))[None]
     pose_t = None if pose_gt is None else torch.as_tensor(pose_gt, dtype=torch.float64)
+    maps = [depth_t, None if sfm is None else torch.as_tensor(sfm[0], dtype=torch.float32)]
+    poses = [pose_t, None if sfm is None else torch.as_tensor(sfm[1], dtype=torch.float64)]
     if augment is not None:
-        frames_t, camera, depth_t, mask_t, pose_t = augment_geometry(
-            frames_t, camera, depth_t, mask_t, pose_t, augment
-        )
+        frames_t, camera, mask_t, maps, poses = _augmented(frames_t, camera, mask_t, maps, poses, augment)
+    (depth_t, sfm_depth), (pose_t, sfm_pose) = maps, poses
     images = to_float(frames_t, augment)
     sample: dict[str, Any] = {
         "target": images[0],
@@ -154,7 +158,41 @@ def build_sample(
         sample["pose_gt"] = pose_t.float()
     if mask_t is not None:
         sample["mask"] = mask_t.contiguous()
+    if sfm_depth is not None:
+        sample["sfm_depth"] = sfm_depth.contiguous()
+        sample["sfm_pose"] = sfm_pose.float()
+        sample["sfm_valid"] = torch.as_tensor(sfm[2], dtype=torch.float32)  # type: ignore[index]
     sample["sequence"] = sequence
     sample["frame"] = frame
     sample["index"] = index
     return sample
+
+
+def _augmented(
+    frames: Tensor,
+    camera: Camera,
+    mask: Tensor | None,
+    maps: list[Tensor | None],
+    poses: list[Tensor | None],
+    augment: AugmentConfig,
+) -> tuple[Tensor, Camera, Tensor | None, list[Tensor | None], list[Tensor | None]]:
+    """:func:`augment_geometry` of the frames with several target maps ``[C,H,W]`` (ground truth, the ride's
+    own geometry) and pose stacks ``[K,4,4]`` at once (one draw for all; ``None`` entries kept)."""
+    have_m, have_p = [m for m in maps if m is not None], [p for p in poses if p is not None]
+    frames, camera, m, mask, p = augment_geometry(
+        frames,
+        camera,
+        torch.cat(have_m) if have_m else None,
+        mask,
+        torch.cat(have_p) if have_p else None,
+        augment,
+    )
+    pieces_m = iter(m.split([len(x) for x in have_m])) if m is not None else iter(())
+    pieces_p = iter(p.split([len(x) for x in have_p])) if p is not None else iter(())
+    return (
+        frames,
+        camera,
+        mask,
+        [None if x is None else next(pieces_m) for x in maps],
+        [None if x is None else next(pieces_p) for x in poses],
+    )

@@ -25,6 +25,7 @@ __all__ = [
     "DataConfig",
     "ModelConfig",
     "OptimConfig",
+    "SfmConfig",
     "TrainConfig",
     "apply_overrides",
     "config_from_dict",
@@ -61,6 +62,9 @@ class DataConfig:
     mask: str | None = None  # image of pixels to use (white), e.g. the helmet excluded
     workers: int | None = None  # loader processes; None: 0 on the CPU with cached frames, else 2
     cache: bool | str = "auto"  # frames decoded once and kept in memory (auto: when they fit easily)
+    # a folder of the rides' own adjusted geometry (one cylsfm odometry output per ride, named as the ride):
+    # the targets of loss.sfm_depth_weight, loss.sfm_pose_weight and loss.sfm_synthesis (no labels)
+    geometry: str | None = None
 
 
 @dataclass
@@ -110,6 +114,37 @@ class OptimConfig:
 
 
 @dataclass
+class SfmConfig:
+    """Rounds of training from the rides' own geometry (``cylsfm train --sfm-rounds N``; the rounds are run
+    by :func:`cylsfm.rounds.train_rounds`, above the odometry): plain training for ``first_share`` of the
+    budget, then ``rounds`` times: the odometry with the bundle adjustment over every training ride, and
+    training on with the adjusted points and poses as targets (``loss.sfm_*`` set from these).
+
+    Attributes:
+        rounds: geometry passes (0: plain self-supervision).
+        first_share: the share of the budget (minutes or steps) trained before the first pass.
+        depth_weight: ``loss.sfm_depth_weight`` once a ride has its geometry.
+        pose_weight: ``loss.sfm_pose_weight``.
+        synthesis: ``loss.sfm_synthesis``: warp with the adjusted poses.
+        refine: the odometry's direct alignment before the adjustment (slower, a better start).
+    """
+
+    rounds: int = 0
+    first_share: float = 0.5
+    depth_weight: float = 0.1
+    pose_weight: float = 0.1
+    synthesis: bool = False
+    refine: bool = True
+
+    def __post_init__(self) -> None:
+        if self.rounds < 0 or not 0 < self.first_share < 1 or self.depth_weight < 0 or self.pose_weight < 0:
+            raise ConfigError(
+                "sfm.rounds must be >= 0, sfm.first_share in (0, 1), sfm.depth_weight and sfm.pose_weight >= 0; "
+                f"got {self.rounds}, {self.first_share}, {self.depth_weight}, {self.pose_weight}"
+            )
+
+
+@dataclass
 class TrainConfig:
     """Everything a run needs; ``preset`` names the preset it started from."""
 
@@ -118,6 +153,7 @@ class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
+    sfm: SfmConfig = field(default_factory=SfmConfig)
     batch_size: int = 4
     max_steps: int = 60000
     minutes: float | None = None  # wall-clock budget; stops (with a checkpoint) when spent
@@ -269,6 +305,7 @@ _NESTED = {
     (TrainConfig, "model"): ModelConfig,
     (TrainConfig, "loss"): LossConfig,
     (TrainConfig, "optim"): OptimConfig,
+    (TrainConfig, "sfm"): SfmConfig,
 }
 
 
@@ -407,6 +444,10 @@ def apply_overrides(cfg: TrainConfig, overrides: list[str]) -> TrainConfig:
 #: Everything else would make the resumed run a different run; it keeps its saved value.
 RESUMABLE_KEYS = (
     "max_steps",
+    "data.geometry",  # a round of training from the rides' own geometry (cylsfm.rounds) sets these
+    "loss.sfm_depth_weight",
+    "loss.sfm_pose_weight",
+    "loss.sfm_synthesis",
     "minutes",
     "device",
     "data.workers",

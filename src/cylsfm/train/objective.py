@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from ..data.dataset import camera_of
 from ..data.fill import fill_masked
 from ..geometry import Camera, pose_vec_to_mat
-from ..losses import LossConfig, view_synthesis_loss
+from ..losses import LossConfig, sfm_pose_term, sparse_depth_term, view_synthesis_loss
 from ..nn import DispNet, PoseModel
 from .scaffold import SlotPriorScaffold
 
@@ -32,12 +32,15 @@ class Batch:
         target: ``[B,3,H,W]`` in ``[0, 1]``; ``sources``: ``[B,S,3,H,W]``.
         camera: the images' camera (batched intrinsics).
         mask: ``[B,1,H,W]`` or ``[1,1,H,W]`` weights of the pixels to use, or ``None`` (all).
+        sfm: the rides' own adjusted geometry, or ``None``: ``(depth [B,2,H,W], T_tgt_to_src [B,S,4,4],
+            valid [B,S])`` (:class:`~cylsfm.data.SequenceDataset`'s ``sfm_*`` keys).
     """
 
     target: Tensor
     sources: Tensor
     camera: Camera
     mask: Tensor | None
+    sfm: tuple[Tensor, Tensor, Tensor] | None = None
 
     def network_inputs(self) -> tuple[Tensor, Tensor]:
         """``(target, sources)`` as the networks see them: the pixels outside the mask (an occluder fixed
@@ -61,14 +64,18 @@ def batch_on(sample: dict[str, Any], device: torch.device, fov: float, channels_
     src = sample["sources"].to(device, non_blocking=True)
     cam = camera_of(sample)
     mask = sample["mask"].to(device) if "mask" in sample else None
+    sfm = None
+    if "sfm_depth" in sample:
+        sfm = tuple(sample[k].to(device) for k in ("sfm_depth", "sfm_pose", "sfm_valid"))
     if fov < 360:
         x0, x1 = cam.index(0).crop_window(fov)
         cam = cam.crop(fov)
         tgt, src = tgt[..., x0:x1], src[..., x0:x1]
         mask = mask[..., x0:x1] if mask is not None else None
+        sfm = (sfm[0][..., x0:x1], *sfm[1:]) if sfm is not None else None
     if channels_last:
         tgt = tgt.contiguous(memory_format=torch.channels_last)
-    return Batch(tgt, src, cam, mask)
+    return Batch(tgt, src, cam, mask, sfm)
 
 
 #: ``(disparities per scale [B,1,H_s,W_s], pose [B,S,6], masks or None, scaffold terms)``.
@@ -96,8 +103,9 @@ class SfMNet(nn.Module):
 
 
 class Objective:
-    """The loss of one step: view synthesis (every term of :class:`~cylsfm.losses.LossConfig`) plus the
-    networks' own training terms.
+    """The loss of one step: view synthesis (every term of :class:`~cylsfm.losses.LossConfig`), the terms
+    of the rides' own adjusted geometry when the batch has it (``sfm_depth``, ``sfm_pose``; the sources
+    warped with the adjusted poses with ``sfm_synthesis``) plus the networks' own training terms.
 
     Args:
         config: the view-synthesis loss's weights and variants.
@@ -115,19 +123,30 @@ class Objective:
         masks = [m.float() for m in masks] if masks is not None and cfg.explain_weight > 0 else None
         poses = pose_vec_to_mat(pose_vec.float())
         target = batch.target.float().contiguous()
+        warp_poses, own = poses, {}
+        if batch.sfm is not None:
+            sfm_depth, sfm_pose, valid = (t.float() for t in batch.sfm)
+            if batch.mask is not None:  # no point on an occluder
+                sfm_depth = sfm_depth * (batch.mask > 0.5)
+            if cfg.sfm_synthesis:
+                warp_poses = torch.where(valid[..., None, None] > 0, sfm_pose, poses)
+            if cfg.sfm_depth_weight > 0:
+                own["sfm_depth"] = cfg.sfm_depth_weight * sparse_depth_term(disps[0], sfm_depth)
+            if cfg.sfm_pose_weight > 0:
+                own["sfm_pose"] = cfg.sfm_pose_weight * sfm_pose_term(poses, sfm_pose, valid)
         out = view_synthesis_loss(
             target,
             batch.sources.float(),
             disps,
-            poses,
+            warp_poses,
             batch.camera,
             cfg,
             explainability=masks,
             static_mask=batch.mask,
             wrap=self.wrap,
         )
-        total = out.total + sum(extra.values())
-        terms = {**out.terms, **extra, "total": total}
+        total = out.total + sum(own.values()) + sum(extra.values())
+        terms = {**out.terms, **own, **extra, "total": total}
         visuals = {
             "target": target[:1].detach(),
             "warped": out.warped[:1] if out.warped is not None else None,

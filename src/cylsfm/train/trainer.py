@@ -156,6 +156,10 @@ class Trainer:
         augment = AugmentConfig(mirror=d.mirror, color_jitter=d.color_jitter)
         root = Path(d.root)
         if is_strip_dataset(root):
+            if d.geometry:
+                raise CylsfmError(
+                    f"{root}: the rides' own geometry (data.geometry) needs a dataset of format v1"
+                )
             split = d.split or "train"
             return StripDataset(root, split, d.seq_length, "cylindrical", (d.width, d.height), augment)
         static = StaticFilter(d.static_filter, d.min_translation, d.min_image_diff)
@@ -166,6 +170,7 @@ class Trainer:
             ground_truth=False,  # self-supervised: depth and poses are never read
             cache=d.cache,
             mask=d.mask,  # in every sample, so that it follows the mirror
+            geometry=d.geometry,  # the rides' own adjusted geometry (no labels), or None
         )
         return SequenceDataset(index, options)
 

@@ -1,0 +1,141 @@
+"""A ride's own geometry as training targets that need no labels: the poses and sparse points that
+:func:`cylsfm.odometry` adjusted over the whole ride (its bundle adjustment), read back from its output
+folder (``trajectory.txt`` and ``points.npz``).
+
+Each frame gets the depth of the points it saw, at the keypoints where it saw them, and the relative pose
+to any other frame of the ride, all in the ride's one unit. Every depth carries its uncertainty: a point
+triangulated from rays ``alpha`` apart is known to about ``sigma_b / sin(alpha)`` of its distance, where
+``sigma_b`` is a keypoint's angular noise (:data:`KEYPOINT_PIXELS` pixels), never better than
+:data:`DEPTH_FLOOR`.
+
+A folder of such geometry for a dataset holds one odometry output per ride, named as the ride
+(``GEOMETRY/seq_003/trajectory.txt`` ...); :class:`~cylsfm.data.SequenceDataset` reads it with
+``SampleOptions(geometry=GEOMETRY)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import CylsfmError
+from ..geometry import Camera
+from .io import DatasetError, read_tum
+from .points import read_points
+
+__all__ = ["DEPTH_FLOOR", "KEYPOINT_PIXELS", "TOLERANCE", "RideGeometry", "load_geometry"]
+
+#: A keypoint's noise, in pixels of the ride's own frames (the bundle adjustment's).
+KEYPOINT_PIXELS = 0.3
+
+#: An observation is kept where its point projects within this many pixels of its keypoint.
+TOLERANCE = 2.0
+
+#: The smallest relative standard deviation a point's depth is given (the network is not asked for more).
+DEPTH_FLOOR = 0.01
+
+
+@dataclass(frozen=True)
+class RideGeometry:
+    """A ride's adjusted geometry.
+
+    Attributes:
+        c2w: ``float64 [M,4,4]`` camera-to-world poses of the ride's frames, in its unit.
+        frame: ``int64 [N]`` the frame of each observation.
+        uv: ``float64 [N,2]`` where that frame saw its point, in the ride's own pixels (``size``).
+        depth: ``float64 [N]`` the point's cylindrical depth from that frame (``sqrt(x^2 + z^2)`` in the
+            frame's camera axes; a pinhole's ``z``), in the ride's unit; every one positive.
+        sigma: ``float64 [N]`` the relative standard deviation of that depth (of its logarithm).
+        size: ``(W, H)`` of the ride's own frames.
+        unit: the unit's name (``network units``, or ``m`` with a camera height).
+    """
+
+    c2w: np.ndarray
+    frame: np.ndarray
+    uv: np.ndarray
+    depth: np.ndarray
+    sigma: np.ndarray
+    size: tuple[int, int]
+    unit: str
+
+    def depth_map(self, frame: int, size: tuple[int, int]) -> np.ndarray:
+        """``float32 [2,H,W]`` of frame ``frame`` at ``size`` ``(W, H)``: channel 0 the depth of its points
+        at their keypoints (0 where none; the nearest where two fall in one pixel), channel 1 their
+        relative standard deviation (0 where none). Keypoints are scaled with the frame (pixel centres kept),
+        their columns wrapped."""
+        w, h = size
+        out = np.zeros((2, h, w), np.float32)
+        at = np.nonzero(self.frame == frame)[0]
+        if not len(at):
+            return out
+        sx, sy = w / self.size[0], h / self.size[1]
+        col = np.round((self.uv[at, 0] + 0.5) * sx - 0.5).astype(np.int64) % w
+        row = np.round((self.uv[at, 1] + 0.5) * sy - 0.5).astype(np.int64)
+        inside = (row >= 0) & (row < h)
+        at, col, row = at[inside], col[inside], row[inside]
+        order = np.argsort(-self.depth[at], kind="stable")  # far first: the nearest is written last
+        at, col, row = at[order], col[order], row[order]
+        out[0, row, col] = self.depth[at]
+        out[1, row, col] = self.sigma[at]
+        return out
+
+    def relative(self, target: int, sources: list[int]) -> np.ndarray:
+        """``float64 [S,4,4]`` ``T_target_to_source`` for each source frame (``p_s = T p_t``)."""
+        c2w_t = self.c2w[target]
+        w2c_s = np.linalg.inv(self.c2w[np.asarray(sources, dtype=np.int64)])
+        return w2c_s @ c2w_t
+
+
+def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeometry:
+    """The adjusted geometry that :func:`cylsfm.odometry` wrote to ``folder`` for a ride of ``frames``
+    frames seen by ``camera`` (at the frames' own size).
+
+    Only the observations that the geometry explains are kept: the point in front of the frame (its
+    camera's depth positive) and projected within :data:`TOLERANCE` pixels of the keypoint (a point
+    behind the camera, or a keypoint that does not see it, is no target).
+
+    Raises:
+        DatasetError: a file missing or unreadable, a trajectory of another length than the ride, points or
+            keypoints that do not fit it (naming the file and the problem).
+    """
+    folder = Path(folder)
+    path = folder / "trajectory.txt"
+    if not path.is_file():
+        raise DatasetError(f"{path}: not found (the ride's cylsfm odometry, with the bundle adjustment)")
+    _, c2w = read_tum(path)  # DatasetError naming the file and the line
+    if len(c2w) != frames:
+        raise DatasetError(f"{path}: {len(c2w)} poses for a ride of {frames} frames")
+    try:
+        pts = read_points(folder / "points.npz", frames, camera.size)
+    except CylsfmError as exc:  # naming the file: a dataset's problem here
+        raise DatasetError(str(exc)) from None
+    x = pts.xyz[pts.point]  # [N,3] world
+    centre = c2w[pts.frame, :3, 3]
+    local = np.einsum("nji,nj->ni", c2w[pts.frame, :3, :3], x - centre)  # R^T (X - c)
+    grid = torch.from_numpy(local).T[None, :, :, None]  # [1,3,N,1], as the camera takes points
+    depth = camera.depth_of(grid)[0, 0, :, 0].numpy()
+    uv = camera.project(grid)[0, :, :, 0].T.numpy()
+    off = np.abs(uv - pts.uv)
+    if camera.wraps:
+        off[:, 0] = np.minimum(off[:, 0], camera.width - off[:, 0])
+    ok = camera.projectable(grid)[0, 0, :, 0].numpy() & (depth > 0) & (off.max(1) <= TOLERANCE)
+    sigma = _relative_sigma(x - centre, pts.point, len(pts.xyz), 1.0 / float(camera.fx))
+    return RideGeometry(c2w, pts.frame[ok], pts.uv[ok], depth[ok], sigma[ok], camera.size, pts.unit)
+
+
+def _relative_sigma(rays: np.ndarray, point: np.ndarray, n_points: int, pixel: float) -> np.ndarray:
+    """Each observation's relative depth uncertainty ``[N]`` from its point's parallax: the widest angle
+    between the rays ``[N,3]`` (from the observing frames' centres to the point) and the point's first
+    ray, for keypoints of :data:`KEYPOINT_PIXELS` pixels of ``pixel`` radians."""
+    unit = rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    first = np.zeros((n_points, 3))
+    ids, at = np.unique(point, return_index=True)  # each point's first observation (in file order)
+    first[ids] = unit[at]
+    cos = np.clip(np.einsum("ni,ni->n", unit, first[point]), -1.0, 1.0)
+    widest = np.ones(n_points)
+    np.minimum.at(widest, point, cos)
+    sine = np.sqrt(np.maximum(1.0 - widest**2, 1e-12))
+    return np.maximum(KEYPOINT_PIXELS * pixel / sine, DEPTH_FLOOR)[point]

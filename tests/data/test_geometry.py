@@ -1,0 +1,172 @@
+"""A ride's own adjusted geometry as training targets (cylsfm.data.geometry) and in the dataset's samples."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cylsfm.data import SampleOptions, SequenceDataset, build_index
+from cylsfm.data.augment import AugmentConfig
+from cylsfm.data.geometry import DEPTH_FLOOR, load_geometry
+from cylsfm.data.io import DatasetError, write_tum
+from cylsfm.geometry import CylindricalCamera
+from cylsfm.odometry.points import write_points
+
+CAM = CylindricalCamera.full(64, 16)
+
+
+def _yaw(deg: float, x: float, z: float) -> np.ndarray:
+    a = math.radians(deg)
+    m = np.eye(4)
+    m[:3, :3] = [[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]]
+    m[:3, 3] = [x, 0.0, z]
+    return m
+
+
+def _ride(frames: int = 6, points: int = 40, seed: int = 0, camera=CAM):
+    """A camera driving forward and turning a little among points 3-9 m away: its poses ``[M,4,4]``,
+    the points ``[P,3]`` and every observation ``[N,4]`` (frame, point, u, v) at CAM's pixels."""
+    rng = np.random.default_rng(seed)
+    c2w = np.stack([_yaw(2.0 * j, 0.1 * j, 0.5 * j) for j in range(frames)])
+    angle = rng.uniform(-math.pi, math.pi, points)
+    dist = rng.uniform(3.0, 9.0, points)
+    xyz = np.stack([dist * np.sin(angle), rng.uniform(-1.0, 1.0, points), dist * np.cos(angle) + 1.0], 1)
+    tracks = []
+    for j in range(frames):
+        local = (xyz - c2w[j, :3, 3]) @ c2w[j, :3, :3]  # R^T (X - c)
+        uv = camera.project(torch.from_numpy(local).T[None, :, :, None])[0, :, :, 0].T.numpy()
+        uv[:, 0] = (uv[:, 0] + 0.5) % camera.width - 0.5  # the seam's columns wrapped into the frame
+        inside = (uv[:, 1] > -0.5) & (uv[:, 1] < camera.height - 0.5)
+        tracks += [[j, p, *uv[p]] for p in np.nonzero(inside)[0]]
+    return c2w, xyz, np.array(tracks, dtype=np.float64)
+
+
+def _write(folder, c2w, xyz, tracks) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    write_tum(folder / "trajectory.txt", np.arange(len(c2w)), c2w, ["unit: network units"])
+    write_points(folder, xyz, np.zeros((len(xyz), 3), np.uint8), tracks, "network units")
+
+
+def test_depth_relative_poses_and_sigma_against_the_closed_form(tmp_path):
+    c2w, xyz, tracks = _ride()
+    _write(tmp_path / "ride", c2w, xyz, tracks)
+    geo = load_geometry(tmp_path / "ride", len(c2w), CAM)
+    assert len(geo.frame) == len(tracks)  # every observation explained
+    local = np.einsum(
+        "nji,nj->ni", c2w[geo.frame, :3, :3], xyz[tracks[:, 1].astype(int)] - c2w[geo.frame, :3, 3]
+    )
+    np.testing.assert_allclose(geo.depth, np.hypot(local[:, 0], local[:, 2]), rtol=1e-9)
+    assert (geo.sigma >= DEPTH_FLOOR).all()
+    rel = geo.relative(2, [1, 3])
+    np.testing.assert_allclose(rel, np.linalg.inv(c2w[[1, 3]]) @ c2w[2], atol=1e-9)
+    p_t = np.append(xyz[0] - 0.0, 1.0)  # a world point, through the relative pose
+    cam_t = np.linalg.inv(c2w[2]) @ p_t
+    np.testing.assert_allclose(rel[1] @ cam_t, np.linalg.inv(c2w[3]) @ p_t, atol=1e-9)
+
+
+def test_depth_map_at_another_size_puts_each_point_at_its_scaled_pixel(tmp_path):
+    c2w, xyz, tracks = _ride()
+    _write(tmp_path / "ride", c2w, xyz, tracks)
+    geo = load_geometry(tmp_path / "ride", len(c2w), CAM)
+    small = geo.depth_map(3, (32, 8))
+    assert small.shape == (2, 8, 32) and small.dtype == np.float32
+    at = geo.frame == 3
+    col = np.round((geo.uv[at, 0] + 0.5) / 2 - 0.5).astype(int) % 32
+    row = np.round((geo.uv[at, 1] + 0.5) / 2 - 0.5).astype(int)
+    for c, r, d in zip(col, row, geo.depth[at], strict=True):
+        assert small[0, r, c] <= d + 1e-5  # the nearest point of a pixel is kept
+    assert (small[0] > 0).sum() == len({(r, c) for r, c in zip(row, col, strict=True)})
+    assert ((small[1] > 0) == (small[0] > 0)).all()
+    assert not geo.depth_map(99, (32, 8)).any()  # a frame without points: none
+
+
+def test_points_behind_or_not_where_their_keypoint_is_are_no_target(tmp_path):
+    c2w, xyz, tracks = _ride()
+    bad = tracks.copy()
+    bad[:5, 2] = (bad[:5, 2] + CAM.width / 2) % CAM.width  # the keypoint on the other side: the point behind
+    bad[5:8, 3] = np.clip(bad[5:8, 3] + 4.0, 0, CAM.height - 1)  # rows off by 4 pixels
+    _write(tmp_path / "ride", c2w, xyz, bad)
+    geo = load_geometry(tmp_path / "ride", len(c2w), CAM)
+    moved = np.abs(bad[5:8, 3] - tracks[5:8, 3]) > 2.0
+    assert len(geo.frame) == len(tracks) - 5 - int(moved.sum())
+
+
+def test_a_wider_parallax_is_a_surer_depth(tmp_path):
+    c2w, xyz, tracks = _ride(frames=6)
+    near = tracks[tracks[:, 0] <= 1]  # each point seen from two frames 0.5 m apart
+    _write(tmp_path / "two", c2w, xyz, near)
+    _write(tmp_path / "all", c2w, xyz, tracks)
+    two = load_geometry(tmp_path / "two", len(c2w), CAM)
+    full = load_geometry(tmp_path / "all", len(c2w), CAM)
+    point = near[:, 1].astype(int)
+    first = {int(p): s for p, s in zip(point, two.sigma, strict=True)}
+    wide = {int(p): s for p, s in zip(tracks[:, 1].astype(int), full.sigma, strict=True)}
+    assert np.median([wide[p] / first[p] for p in first if p in wide]) < 0.5
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        ("no trajectory", "trajectory.txt: not found"),
+        ("short trajectory", "5 poses for a ride of 6 frames"),
+        ("keypoints outside", "outside the 64x16 frames"),
+        ("no points", "points.npz: not found"),
+    ],
+)
+def test_bad_geometry_is_named(tmp_path, damage, message):
+    c2w, xyz, tracks = _ride()
+    if damage == "keypoints outside":
+        tracks[0, 3] = 40.0
+    _write(tmp_path / "ride", c2w, xyz, tracks)
+    if damage == "no trajectory":
+        (tmp_path / "ride" / "trajectory.txt").unlink()
+    if damage == "short trajectory":
+        write_tum(tmp_path / "ride" / "trajectory.txt", np.arange(5), c2w[:5])
+    if damage == "no points":
+        (tmp_path / "ride" / "points.npz").unlink()
+    with pytest.raises(DatasetError, match=message):
+        load_geometry(tmp_path / "ride", len(c2w), CAM)
+
+
+def _dataset(root, geometry, mirror_prob=0.0):
+    index = build_index(root, None, seq_length=3)
+    augment = AugmentConfig(mirror=mirror_prob > 0, mirror_prob=mirror_prob, color_jitter=False)
+    return SequenceDataset(index, SampleOptions(size=(32, 8), augment=augment, geometry=geometry))
+
+
+@pytest.fixture
+def tiny(tmp_path):
+    """A 2-ride synthetic dataset at 64x16 and the geometry of its first ride (its true poses, its own
+    points)."""
+    from cylsfm.data.synth import generate_dataset
+
+    root = tmp_path / "data"
+    generate_dataset(root, sequences=2, frames=6, width=64, height=16, seed=0, workers=1, progress=False)
+    return root
+
+
+def test_samples_carry_the_geometry_mirrored_with_the_frames(tiny, tmp_path):
+    from cylsfm.data.io import read_tum
+
+    seq = sorted(p for p in tiny.iterdir() if p.name.startswith("seq_"))[0]
+    _, c2w = read_tum(seq / "poses.txt")
+    cam = CylindricalCamera.from_json(seq / "camera.json")
+    ride_c2w, xyz, tracks = _ride(frames=len(c2w), camera=cam)
+    geo_root = tmp_path / "geometry"
+    _write(geo_root / seq.name, ride_c2w, xyz, tracks)
+    plain, mirrored = _dataset(tiny, geo_root), _dataset(tiny, geo_root, mirror_prob=1.0)
+    a = plain[0]
+    assert a["sequence"] == seq.name and a["sfm_depth"].shape == (2, 8, 32)
+    assert a["sfm_valid"].tolist() == [1.0, 1.0] and (a["sfm_depth"][0] > 0).any()
+    tgt = int(a["frame"])
+    want = ride_c2w[[tgt - 1, tgt + 1]]
+    np.testing.assert_allclose(a["sfm_pose"].numpy(), np.linalg.inv(want) @ ride_c2w[tgt], atol=1e-5)
+    b = mirrored[0]
+    assert torch.equal(b["sfm_depth"], a["sfm_depth"].flip(-1))
+    flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+    torch.testing.assert_close(b["sfm_pose"], flip @ a["sfm_pose"] @ flip)
+    other = next(s for s in plain if s["sequence"] != seq.name)  # the ride without geometry: no target
+    assert other["sfm_valid"].tolist() == [0.0, 0.0] and not other["sfm_depth"].any()

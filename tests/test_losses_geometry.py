@@ -3,6 +3,7 @@ objective applies them (the mask, the poses that warp)."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from cylsfm.geometry import CylindricalCamera, pose_vec_to_mat
@@ -57,7 +58,7 @@ def test_pose_term_is_zero_for_the_adjusted_poses_and_grows_with_an_error():
     gen = torch.Generator().manual_seed(1)
     vec = torch.cat([torch.randn(2, 2, 3, generator=gen), 0.05 * torch.randn(2, 2, 3, generator=gen)], -1)
     sfm = pose_vec_to_mat(vec)
-    valid = torch.ones(2, 2)
+    valid = torch.full((2, 2), 0.3)  # the ride's median step
     assert float(sfm_pose_term(sfm, sfm, valid)) < 1e-6
     errors = []
     for e in (0.01, 0.05, 0.2):
@@ -66,6 +67,9 @@ def test_pose_term_is_zero_for_the_adjusted_poses_and_grows_with_an_error():
         off[..., 4] += e
         errors.append(float(sfm_pose_term(pose_vec_to_mat(off), sfm, valid)))
     assert 0 < errors[0] < errors[1] < errors[2]
+    off = vec.clone()
+    off[..., 0] += 0.03  # a tenth of a step
+    assert float(sfm_pose_term(pose_vec_to_mat(off), sfm, valid)) == pytest.approx(0.1, rel=1e-4)
     off = vec.clone()
     off[0, 1, :3] += 5.0  # a pair without the ride's geometry: no matter
     valid[0, 1] = 0
@@ -78,7 +82,7 @@ def _batch(sparse, mask=None, seed=0):
     b, _, h, w = sparse.shape
     cam = CylindricalCamera.full(w, h)
     pose = pose_vec_to_mat(torch.tensor([[0.0, 0.0, 0.3, 0.0, 0.0, 0.0], [0.0, 0.0, -0.3, 0.0, 0.0, 0.0]]))
-    sfm = (sparse, pose.expand(b, 2, 4, 4).clone(), torch.ones(b, 2))
+    sfm = (sparse, pose.expand(b, 2, 4, 4).clone(), torch.full((b, 2), 0.3))
     target = torch.rand(b, 3, h, w, generator=gen)
     return Batch(target, torch.rand(b, 2, 3, h, w, generator=gen), cam.stack([cam] * b), mask, sfm)
 
@@ -104,17 +108,25 @@ def test_objective_adds_the_terms_and_ignores_points_under_the_mask():
     assert float(terms["sfm_depth"]) < 1e-8
 
 
-def test_synthesis_warps_with_the_adjusted_poses_where_the_ride_has_them():
+def test_synthesis_warps_with_the_adjusted_poses_where_the_ride_has_them(monkeypatch):
+    import cylsfm.train.objective as objective
+
+    seen = []
+    real = objective.view_synthesis_loss
+
+    def spy(target, sources, disps, poses, *args, **kwargs):
+        seen.append(poses.clone())
+        return real(target, sources, disps, poses, *args, **kwargs)
+
+    monkeypatch.setattr(objective, "view_synthesis_loss", spy)
     depth, sparse = _points(b=2, h=16, w=64)
     still = torch.zeros(2, 2, 6)  # the network says: no motion
     batch = _batch(sparse)
-    plain = Objective(LossConfig(), wrap=True)(batch, _outputs(depth, still))[1]["photometric"]
-    warped = Objective(LossConfig(sfm_synthesis=True), wrap=True)(batch, _outputs(depth, still))[1][
-        "photometric"
-    ]
-    assert not torch.isclose(plain, warped)
-    batch.sfm[2].zero_()  # no geometry: the predicted poses warp
-    again = Objective(LossConfig(sfm_synthesis=True), wrap=True)(batch, _outputs(depth, still))[1][
-        "photometric"
-    ]
-    torch.testing.assert_close(again, plain)
+    batch.sfm[2][1, 0] = 0  # the second sample's first source has no geometry
+    Objective(LossConfig(), wrap=True)(batch, _outputs(depth, still))
+    Objective(LossConfig(sfm_synthesis=True), wrap=True)(batch, _outputs(depth, still))
+    eye = torch.eye(4).expand(2, 2, 4, 4)
+    torch.testing.assert_close(seen[0], eye)  # the predicted poses
+    want = batch.sfm[1].clone()
+    want[1, 0] = torch.eye(4)  # the predicted pose where the ride has none
+    torch.testing.assert_close(seen[1], want)

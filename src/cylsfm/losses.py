@@ -460,20 +460,19 @@ def sparse_depth_term(disparity: Tensor, sparse: Tensor) -> Tensor:
     return torch.log1p((r / sigma) ** 2).mean()
 
 
-def sfm_pose_term(poses: Tensor, sfm_poses: Tensor, valid: Tensor) -> Tensor:
-    """How far the predicted poses are from the ride's adjusted ones: the translation's error over the
-    batch's mean adjusted step, plus the rotation's (``|R - R_sfm|_F / sqrt(2)``, about the angle in
-    radians), averaged over the valid pairs (0 without any).
+def sfm_pose_term(poses: Tensor, sfm_poses: Tensor, step: Tensor) -> Tensor:
+    """How far the predicted poses are from the ride's adjusted ones: the translation's error in the ride's
+    median steps, plus the rotation's (``|R - R_sfm|_F / sqrt(2)``, about the angle in radians), averaged
+    over the pairs that have the ride's geometry (0 without any).
 
     Args:
         poses: ``[B,S,4,4]`` predicted ``T_tgt_to_src``; ``sfm_poses``: the adjusted ones, in the depth's
-            unit; ``valid``: ``[B,S]`` 1 where the ride has its geometry.
+            unit; ``step``: ``[B,S]`` the ride's median step length (0: no geometry for the pair).
     """
     check_shape(sfm_poses, ",".join(str(n) for n in poses.shape), "sfm_poses")
-    weight = valid.to(poses.dtype)
+    weight = (step > 0).to(poses.dtype)
     if not bool((weight > 0).any()):
         return poses.new_zeros(())
-    step = (sfm_poses[..., :3, 3].norm(dim=-1) * weight).sum() / weight.sum()
     t = (poses[..., :3, 3] - sfm_poses[..., :3, 3]).norm(dim=-1) / step.clamp(min=1e-6)
     rot = (poses[..., :3, :3] - sfm_poses[..., :3, :3]).flatten(-2).norm(dim=-1) / 2**0.5
     return ((t + rot) * weight).sum() / weight.sum()

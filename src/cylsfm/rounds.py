@@ -18,7 +18,8 @@ The budget (``minutes``, or ``max_steps``) covers everything, the odometry inclu
 each geometry pass is shared among the training stages left, less the passes still to come (each taken
 to last as long as the last one). What is done is recorded in ``RUN/rounds.json`` (written atomically):
 a run interrupted anywhere continues with ``--resume`` where it stopped (a training stage from its
-checkpoint, a geometry pass ride by ride), to the same result.
+checkpoint, a geometry pass ride by ride), with the configuration recorded when it started, to the same
+result.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import time
 import warnings
 from dataclasses import replace
@@ -34,8 +36,9 @@ from typing import Any
 
 from .atomic import atomic_write_text
 from .data import build_index
+from .data.strips import is_strip_dataset
 from .errors import CylsfmError
-from .model.config import TrainConfig
+from .model.config import TrainConfig, config_from_dict, config_to_dict
 from .odometry import OdometrySettings, odometry
 from .train.trainer import train
 
@@ -57,30 +60,33 @@ def train_rounds(
     Args:
         cfg: the run's configuration; ``cfg.sfm`` says how many rounds and how they weigh.
         run_dir: the run directory (checkpoints, the geometry, ``rounds.json``).
-        resume: continue a run there; ``overwrite``: start it again.
+        resume: continue the run there (from ``rounds.json``: its recorded configuration, what it did);
+            ``overwrite``: start it again (its geometry, checkpoints and logs removed).
         progress: progress bars.
 
     Returns:
         ``{"steps", "seconds", "stages": [{"stage", "seconds", ...}], "run_dir"}``.
     """
     run = Path(run_dir)
-    state = _load_state(run) if resume else None
-    if state is None:
-        if (run / STATE_FILE).exists() and not (resume or overwrite):
-            raise CylsfmError(
-                f"{run}: already holds a run in rounds: --resume continues it, --overwrite starts again"
-            )
-        state = {"stages": [], "seconds": 0.0}
+    cfg, state = _start(cfg, run, resume, overwrite)
     plan = _stages(cfg.sfm.rounds)
-    steps = 0
+    trained = [s["steps"] for s in state["stages"] if s["stage"] == "train"]
+    steps = trained[-1] if trained else 0
     for k, stage in enumerate(plan):
         if k < len(state["stages"]):
             continue  # done before the run was interrupted
+        if stage == "geometry" and _out_of_time(cfg, state):
+            state["stopped"] = "minutes"  # no time left for another pass and its training
+            break
         started = time.monotonic()
         if stage == "train":
             sub = _training_config(cfg, run, state, plan, k)
-            first = k == 0 and not resume
-            summary = train(sub, run, resume=not first, progress=progress, overwrite=overwrite and first)
+            # the first stage starts afresh, unless it is resumed from its checkpoint
+            fresh = k == 0 and not (resume and (run / "checkpoints" / "latest.pt").exists())
+            clear = fresh and (
+                overwrite or resume
+            )  # an older run's outputs, or this one's before a checkpoint
+            summary = train(sub, run, resume=not fresh, progress=progress, overwrite=clear)
             record = {"stage": "train", "steps": summary["steps"], "stopped": summary["stopped"]}
             steps = summary["steps"]
             if summary["stopped"] == "interrupted":
@@ -93,7 +99,46 @@ def train_rounds(
         state["stages"].append(record)
         state["seconds"] += time.monotonic() - started
         _save_state(run, state)
+    _save_state(run, state)
     return _summary(run, state, steps)
+
+
+def _start(cfg: TrainConfig, run: Path, resume: bool, overwrite: bool) -> tuple[TrainConfig, dict]:
+    """The whole run's configuration and its record: on ``resume`` both as recorded when it started (the
+    stages' own ``RUN/config.yaml`` hold their shares of the budget; the data root, the device and the
+    loader processes may change); otherwise a new record, an older run in rounds refused or, with
+    ``overwrite``, removed with its geometry."""
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise CylsfmError("--sfm-rounds runs the odometry between its stages: train it in one process")
+    if is_strip_dataset(Path(cfg.data.root)):
+        raise CylsfmError(
+            f"{cfg.data.root}: --sfm-rounds needs a dataset of format v1 (rides with their frames)"
+        )
+    state = _load_state(run) if resume else None
+    if state is not None:
+        recorded = config_from_dict(state["config"], f"{run / STATE_FILE} (config)", saved=True)
+        data = replace(recorded.data, root=cfg.data.root, workers=cfg.data.workers)
+        return replace(recorded, data=data, device=cfg.device), state
+    if resume:
+        raise CylsfmError(f"{run / STATE_FILE}: not found: {run} is not a run in rounds to continue")
+    held = [p for p in (STATE_FILE, "checkpoints", "metrics.jsonl", "tb") if (run / p).exists()]
+    if held and not overwrite:
+        raise CylsfmError(
+            f"{run}: already holds a run ({', '.join(held)}): --resume continues it, --overwrite starts it again"
+        )
+    shutil.rmtree(run / "geometry", ignore_errors=True)  # an older run's (the trainer removes the rest)
+    state = {"config": config_to_dict(cfg), "stages": [], "seconds": 0.0}
+    run.mkdir(parents=True, exist_ok=True)
+    _save_state(run, state)
+    return cfg, state
+
+
+def _out_of_time(cfg: TrainConfig, state: dict) -> bool:
+    """Whether the minutes left cannot pay for another geometry pass (as long as the last one)."""
+    if cfg.minutes is None:
+        return False
+    passes = [s["seconds"] for s in state["stages"] if s["stage"] == "geometry"]
+    return cfg.minutes * 60 - state["seconds"] <= (passes[-1] if passes else 0.0)
 
 
 def _stages(rounds: int) -> list[str]:
@@ -125,8 +170,8 @@ def _training_config(cfg: TrainConfig, run: Path, state: dict, plan: list[str], 
         steps = first if k == 0 else first + round((cfg.max_steps - first) * done / (trainings - 1))
     minutes = cfg.minutes
     if minutes is not None and trainings > 1:
-        if k == 0:
-            minutes = minutes * sfm.first_share
+        if k == 0:  # less what a resumed first stage spent already
+            minutes = max(minutes * sfm.first_share - state["seconds"] / 60, 0.0) or 1e-6
         else:
             passes = [s["seconds"] for s in state["stages"] if s["stage"] == "geometry"]
             left = minutes * 60 - state["seconds"] - passes[-1] * plan[k:].count("geometry")
@@ -150,7 +195,9 @@ def _geometry(cfg: TrainConfig, run: Path, round_: int, progress: bool) -> dict[
     d = cfg.data
     index = build_index(d.root, d.split, d.split_name, d.seq_length, d.stride)
     out = geometry_dir(run, round_)
-    settings = OdometrySettings(refine=cfg.sfm.refine, bundle=True, progress=progress, mask=d.mask or None)
+    settings = OdometrySettings(
+        refine=cfg.sfm.refine, bundle=True, progress=progress, mask=d.mask or None, device=cfg.device
+    )
     done: dict[str, str] = {}
     for s in index.used:
         seq = index.sequences[s]
@@ -158,6 +205,7 @@ def _geometry(cfg: TrainConfig, run: Path, round_: int, progress: bool) -> dict[
             odometry(seq.path, run, out / seq.name, settings)
             done[seq.name] = "ok"
         except CylsfmError as exc:  # a ride too short or without features: trained on without targets
+            shutil.rmtree(out / seq.name, ignore_errors=True)
             warnings.warn(f"{seq.path}: no geometry this round ({exc})", UserWarning, stacklevel=2)
             done[seq.name] = str(exc)
     return done
@@ -171,6 +219,8 @@ def _load_state(run: Path) -> dict | None:
         state = json.loads(path.read_text())
         if not isinstance(state.get("stages"), list) or not math.isfinite(float(state["seconds"])):
             raise ValueError("no stages or seconds")
+        if not isinstance(state.get("config"), dict):
+            raise ValueError("no configuration")
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise CylsfmError(f"{path}: not the record of a run in rounds ({exc})") from None
     return state
@@ -185,6 +235,6 @@ def _summary(run: Path, state: dict, steps: int, interrupted: bool = False) -> d
         "steps": steps,
         "seconds": state["seconds"],
         "stages": list(state["stages"]),
-        "stopped": "interrupted" if interrupted else "done",
+        "stopped": "interrupted" if interrupted else state.get("stopped", "done"),
         "run_dir": str(run),
     }

@@ -26,14 +26,16 @@ def _yaw(deg: float, x: float, z: float) -> np.ndarray:
     return m
 
 
-def _ride(frames: int = 6, points: int = 40, seed: int = 0, camera=CAM):
+def _ride(frames: int = 6, points: int = 40, seed: int = 0, camera=CAM, c2w=None):
     """A camera driving forward and turning a little among points 3-9 m away: its poses ``[M,4,4]``,
     the points ``[P,3]`` and every observation ``[N,4]`` (frame, point, u, v) at CAM's pixels."""
     rng = np.random.default_rng(seed)
-    c2w = np.stack([_yaw(2.0 * j, 0.1 * j, 0.5 * j) for j in range(frames)])
+    if c2w is None:
+        c2w = np.stack([_yaw(2.0 * j, 0.1 * j, 0.5 * j) for j in range(frames)])
     angle = rng.uniform(-math.pi, math.pi, points)
     dist = rng.uniform(3.0, 9.0, points)
     xyz = np.stack([dist * np.sin(angle), rng.uniform(-1.0, 1.0, points), dist * np.cos(angle) + 1.0], 1)
+    xyz = xyz @ c2w[0, :3, :3].T + c2w[0, :3, 3]  # around the first frame
     tracks = []
     for j in range(frames):
         local = (xyz - c2w[j, :3, 3]) @ c2w[j, :3, :3]  # R^T (X - c)
@@ -67,19 +69,22 @@ def test_depth_relative_poses_and_sigma_against_the_closed_form(tmp_path):
     np.testing.assert_allclose(rel[1] @ cam_t, np.linalg.inv(c2w[3]) @ p_t, atol=1e-9)
 
 
-def test_depth_map_at_another_size_puts_each_point_at_its_scaled_pixel(tmp_path):
-    c2w, xyz, tracks = _ride()
+def test_depth_map_at_another_size_keeps_the_nearest_point_of_each_scaled_pixel(tmp_path):
+    c2w, xyz, tracks = _ride(points=120)
     _write(tmp_path / "ride", c2w, xyz, tracks)
     geo = load_geometry(tmp_path / "ride", len(c2w), CAM)
     small = geo.depth_map(3, (32, 8))
     assert small.shape == (2, 8, 32) and small.dtype == np.float32
     at = geo.frame == 3
-    col = np.round((geo.uv[at, 0] + 0.5) / 2 - 0.5).astype(int) % 32
+    col = np.round((geo.uv[at, 0] + 0.5) / 2 - 0.5).astype(int) % 32  # pixel centres kept, halved
     row = np.round((geo.uv[at, 1] + 0.5) / 2 - 0.5).astype(int)
-    for c, r, d in zip(col, row, geo.depth[at], strict=True):
-        assert small[0, r, c] <= d + 1e-5  # the nearest point of a pixel is kept
-    assert (small[0] > 0).sum() == len({(r, c) for r, c in zip(row, col, strict=True)})
-    assert ((small[1] > 0) == (small[0] > 0)).all()
+    nearest: dict[tuple[int, int], float] = {}
+    for r, c, d in zip(row, col, geo.depth[at], strict=True):
+        nearest[(r, c)] = min(d, nearest.get((r, c), np.inf))
+    assert len(nearest) < at.sum()  # some pixels have two points: the nearest is kept
+    for (r, c), d in nearest.items():
+        assert small[0, r, c] == pytest.approx(d, rel=1e-6) and small[1, r, c] >= DEPTH_FLOOR
+    assert (small[0] > 0).sum() == len(nearest) and ((small[1] > 0) == (small[0] > 0)).all()
     assert not geo.depth_map(99, (32, 8)).any()  # a frame without points: none
 
 
@@ -114,12 +119,15 @@ def test_a_wider_parallax_is_a_surer_depth(tmp_path):
         ("short trajectory", "5 poses for a ride of 6 frames"),
         ("keypoints outside", "outside the 64x16 frames"),
         ("no points", "points.npz: not found"),
+        ("standing still", "does not move"),
     ],
 )
 def test_bad_geometry_is_named(tmp_path, damage, message):
     c2w, xyz, tracks = _ride()
     if damage == "keypoints outside":
         tracks[0, 3] = 40.0
+    if damage == "standing still":
+        c2w[:, :3, 3] = 0.0
     _write(tmp_path / "ride", c2w, xyz, tracks)
     if damage == "no trajectory":
         (tmp_path / "ride" / "trajectory.txt").unlink()
@@ -131,16 +139,16 @@ def test_bad_geometry_is_named(tmp_path, damage, message):
         load_geometry(tmp_path / "ride", len(c2w), CAM)
 
 
-def _dataset(root, geometry, mirror_prob=0.0):
+def _dataset(root, geometry, mirror_prob=0.0, ground_truth=False):
     index = build_index(root, None, seq_length=3)
     augment = AugmentConfig(mirror=mirror_prob > 0, mirror_prob=mirror_prob, color_jitter=False)
-    return SequenceDataset(index, SampleOptions(size=(32, 8), augment=augment, geometry=geometry))
+    options = SampleOptions(size=(32, 8), augment=augment, geometry=geometry, ground_truth=ground_truth)
+    return SequenceDataset(index, options)
 
 
 @pytest.fixture
 def tiny(tmp_path):
-    """A 2-ride synthetic dataset at 64x16 and the geometry of its first ride (its true poses, its own
-    points)."""
+    """A 2-ride synthetic dataset at 64x16 (with its ground truth)."""
     from cylsfm.data.synth import generate_dataset
 
     root = tmp_path / "data"
@@ -149,24 +157,29 @@ def tiny(tmp_path):
 
 
 def test_samples_carry_the_geometry_mirrored_with_the_frames(tiny, tmp_path):
+    """With the ride's true trajectory as its geometry, the adjusted poses of a sample are its ground-truth
+    poses, plain and mirrored; a ride without geometry has no target."""
     from cylsfm.data.io import read_tum
 
     seq = sorted(p for p in tiny.iterdir() if p.name.startswith("seq_"))[0]
     _, c2w = read_tum(seq / "poses.txt")
     cam = CylindricalCamera.from_json(seq / "camera.json")
-    ride_c2w, xyz, tracks = _ride(frames=len(c2w), camera=cam)
+    _, xyz, tracks = _ride(frames=len(c2w), camera=cam, c2w=c2w)
     geo_root = tmp_path / "geometry"
-    _write(geo_root / seq.name, ride_c2w, xyz, tracks)
-    plain, mirrored = _dataset(tiny, geo_root), _dataset(tiny, geo_root, mirror_prob=1.0)
-    a = plain[0]
-    assert a["sequence"] == seq.name and a["sfm_depth"].shape == (2, 8, 32)
-    assert a["sfm_valid"].tolist() == [1.0, 1.0] and (a["sfm_depth"][0] > 0).any()
-    tgt = int(a["frame"])
-    want = ride_c2w[[tgt - 1, tgt + 1]]
-    np.testing.assert_allclose(a["sfm_pose"].numpy(), np.linalg.inv(want) @ ride_c2w[tgt], atol=1e-5)
-    b = mirrored[0]
-    assert torch.equal(b["sfm_depth"], a["sfm_depth"].flip(-1))
-    flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
-    torch.testing.assert_close(b["sfm_pose"], flip @ a["sfm_pose"] @ flip)
-    other = next(s for s in plain if s["sequence"] != seq.name)  # the ride without geometry: no target
-    assert other["sfm_valid"].tolist() == [0.0, 0.0] and not other["sfm_depth"].any()
+    _write(geo_root / seq.name, c2w, xyz, tracks)
+    step = np.median(np.linalg.norm(np.diff(c2w[:, :3, 3], axis=0), axis=1))
+    plain = None
+    for mirror in (0.0, 1.0):
+        data = _dataset(tiny, geo_root, mirror_prob=mirror, ground_truth=True)
+        a = data[0]
+        assert (
+            a["sequence"] == seq.name and a["sfm_depth"].shape == (2, 8, 32) and (a["sfm_depth"][0] > 0).any()
+        )
+        np.testing.assert_allclose(a["sfm_step"].numpy(), [step, step], rtol=1e-5)
+        torch.testing.assert_close(a["sfm_pose"], a["pose_gt"], atol=1e-5, rtol=1e-5)
+        if plain is not None:  # mirrored: the depth flipped with the frames
+            assert torch.equal(a["sfm_depth"], plain["sfm_depth"].flip(-1))
+            assert not torch.allclose(a["sfm_pose"], plain["sfm_pose"])
+        plain = a
+        other = next(s for s in data if s["sequence"] != seq.name)
+        assert other["sfm_step"].tolist() == [0.0, 0.0] and not other["sfm_depth"].any()

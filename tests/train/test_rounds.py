@@ -10,6 +10,7 @@ import torch
 
 import cylsfm.rounds as rounds
 from cylsfm.data.geometry import load_geometry
+from cylsfm.errors import CylsfmError
 from cylsfm.geometry import CylindricalCamera
 from cylsfm.model import load_checkpoint
 from cylsfm.rounds import STATE_FILE, geometry_dir, train_rounds
@@ -93,3 +94,62 @@ def test_the_budget_is_shared_after_each_pass():
     # 600 s - 300 spent - one more pass of 60 s, in two stages: 120 s each
     assert second.minutes == pytest.approx(2.0) and second.max_steps == 700
     assert second.data.geometry == str(rounds.Path("r/geometry/round_1")) and second.loss.sfm_depth_weight > 0
+
+
+def test_the_command_resumes_the_whole_run_not_the_stage_it_stopped_in(
+    tiny_data, tmp_path, monkeypatch, capsys
+):
+    """``train --resume`` of a run in rounds continues the plan recorded when it started (the stage's own
+    ``config.yaml`` holds only its share of the budget)."""
+    from cylsfm.cli import main
+
+    run = tmp_path / "run"
+    args = ["train", "--data", str(tiny_data), "--out", str(run), "--size", "128x32", "--max-steps", "4"]
+    args += ["--sfm-rounds", "1", "--split", "all", "--workers", "0", "--batch-size", "2", "--no-progress"]
+    args += ["sfm.refine=false", "latest_every=1", "checkpoint_every=0"]
+    real = rounds.odometry
+
+    def killed(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rounds, "odometry", killed)
+    assert main(args) == 130
+    assert load_checkpoint(run)["step"] == 2
+    monkeypatch.setattr(rounds, "odometry", real)
+    assert main(["train", "--out", str(run), "--resume", "--no-progress"]) == 0
+    assert load_checkpoint(run)["step"] == 4
+    assert "trained to step 4 in rounds (done)" in capsys.readouterr().out
+    stages = json.loads((run / STATE_FILE).read_text())["stages"]
+    assert [s["stage"] for s in stages] == ["train", "geometry", "train"]
+
+
+def test_a_ride_without_geometry_is_trained_on_without_targets(tiny_data, tmp_path, monkeypatch):
+    rides = sorted(p.name for p in tiny_data.iterdir() if p.name.startswith("seq_"))
+    real = rounds.odometry
+
+    def first_fails(ride, checkpoint, out, settings):
+        if ride.name == rides[0]:
+            out.mkdir(parents=True)  # the odometry makes its folder before it finds the ride too short
+            (out / "odometry_state.json").write_text("{}")
+            raise CylsfmError(f"{ride}: 3 frames; a trajectory needs at least 4")
+        return real(ride, checkpoint, out, settings)
+
+    monkeypatch.setattr(rounds, "odometry", first_fails)
+    run = tmp_path / "run"
+    with pytest.warns(UserWarning, match="no geometry this round"):
+        done = train_rounds(_cfg(tiny_data), run, progress=False)
+    assert done["steps"] == 4 and done["stages"][1]["rides"][rides[1]] == "ok"
+    assert "needs at least 4" in done["stages"][1]["rides"][rides[0]]
+    assert not (geometry_dir(run, 1) / rides[0]).exists()
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert all(r["step"] <= 2 or "sfm_depth" in r for r in rows)
+
+
+def test_a_run_in_rounds_is_not_started_over_by_accident(tiny_data, tmp_path):
+    run = tmp_path / "run"
+    train_rounds(_cfg(tiny_data, max_steps=2, **{"sfm.rounds": 0}), run, progress=False)
+    with pytest.raises(CylsfmError, match="already holds a run"):
+        train_rounds(_cfg(tiny_data), run, progress=False)
+    (run / "geometry" / "round_1" / "old").mkdir(parents=True)
+    done = train_rounds(_cfg(tiny_data), run, progress=False, overwrite=True)
+    assert done["steps"] == 4 and not (run / "geometry" / "round_1" / "old").exists()

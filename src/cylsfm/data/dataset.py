@@ -65,7 +65,7 @@ class SampleOptions:
             a mirrored mask).
         geometry: a folder with the rides' own adjusted geometry, one :func:`cylsfm.odometry` output per
             ride named as the ride (:mod:`cylsfm.data.geometry`): each sample then has ``"sfm_depth"``,
-            ``"sfm_pose"`` and ``"sfm_valid"``. A ride without its folder gives no target (all invalid).
+            ``"sfm_pose"`` and ``"sfm_step"``. A ride without its folder gives no target (``sfm_step`` 0).
 
     Raises:
         InputError: for an invalid ``size`` or ``cache``; a ``ValueError`` too.
@@ -104,7 +104,8 @@ class SequenceDataset(Dataset):
     - ``"sfm_depth"``: ``float32 [2,H,W]``, with ``options.geometry``: the ride's adjusted points seen by the
       target, channel 0 their depth in the ride's unit (0 = none), channel 1 its relative standard deviation;
       ``"sfm_pose"``: ``float32 [S,4,4]`` the adjusted ``T_tgt_to_src`` per source, in the ride's unit;
-      ``"sfm_valid"``: ``float32 [S]``, 1 where the ride has its geometry (else 0, the pose the identity);
+      ``"sfm_step"``: ``float32 [S]``, the ride's median step length in its unit where it has its geometry
+      (else 0, the pose the identity);
     - ``"sequence"``: sequence name; ``"frame"``: the target's frame name; ``"index"``: the sample's index.
 
     Use :func:`camera_of` to get the (possibly augmented) camera of a sample or a batch. With an index
@@ -269,7 +270,11 @@ class SequenceDataset(Dataset):
                     np.zeros(len(src)),
                 )
             else:
-                sfm = (ride.depth_map(tgt, camera.size), ride.relative(tgt, src), np.ones(len(src)))
+                sfm = (
+                    ride.depth_map(tgt, camera.size),
+                    ride.relative(tgt, src),
+                    np.full(len(src), ride.step),
+                )
         return build_sample(
             np.stack(images),
             camera,

@@ -40,17 +40,18 @@ DEPTH_FLOOR = 0.01
 
 @dataclass(frozen=True)
 class RideGeometry:
-    """A ride's adjusted geometry.
+    """A ride's adjusted geometry, its observations sorted by frame.
 
     Attributes:
         c2w: ``float64 [M,4,4]`` camera-to-world poses of the ride's frames, in its unit.
-        frame: ``int64 [N]`` the frame of each observation.
+        frame: ``int64 [N]`` the frame of each observation (ascending).
         uv: ``float64 [N,2]`` where that frame saw its point, in the ride's own pixels (``size``).
-        depth: ``float64 [N]`` the point's cylindrical depth from that frame (``sqrt(x^2 + z^2)`` in the
-            frame's camera axes; a pinhole's ``z``), in the ride's unit; every one positive.
+        depth: ``float64 [N]`` the point's depth from that frame in the camera model's sense
+            (``sqrt(x^2 + z^2)`` in the frame's camera axes for a cylinder), in the ride's unit; all positive.
         sigma: ``float64 [N]`` the relative standard deviation of that depth (of its logarithm).
-        size: ``(W, H)`` of the ride's own frames.
+        size: ``(W, H)`` of the ride's own frames; ``wraps``: whether their columns wrap (a full panorama).
         unit: the unit's name (``network units``, or ``m`` with a camera height).
+        step: the ride's median step length between consecutive frames, in its unit (positive).
     """
 
     c2w: np.ndarray
@@ -59,27 +60,34 @@ class RideGeometry:
     depth: np.ndarray
     sigma: np.ndarray
     size: tuple[int, int]
+    wraps: bool
     unit: str
+    step: float
 
     def depth_map(self, frame: int, size: tuple[int, int]) -> np.ndarray:
         """``float32 [2,H,W]`` of frame ``frame`` at ``size`` ``(W, H)``: channel 0 the depth of its points
         at their keypoints (0 where none; the nearest where two fall in one pixel), channel 1 their
-        relative standard deviation (0 where none). Keypoints are scaled with the frame (pixel centres kept),
-        their columns wrapped."""
+        relative standard deviation (0 where none). Keypoints are scaled with the frame (pixel centres kept);
+        a full panorama's columns wrap, other frames' keypoints outside them are left out."""
         w, h = size
         out = np.zeros((2, h, w), np.float32)
-        at = np.nonzero(self.frame == frame)[0]
-        if not len(at):
+        lo, hi = np.searchsorted(self.frame, [frame, frame + 1])
+        if lo == hi:
             return out
-        sx, sy = w / self.size[0], h / self.size[1]
-        col = np.round((self.uv[at, 0] + 0.5) * sx - 0.5).astype(np.int64) % w
-        row = np.round((self.uv[at, 1] + 0.5) * sy - 0.5).astype(np.int64)
-        inside = (row >= 0) & (row < h)
-        at, col, row = at[inside], col[inside], row[inside]
-        order = np.argsort(-self.depth[at], kind="stable")  # far first: the nearest is written last
-        at, col, row = at[order], col[order], row[order]
-        out[0, row, col] = self.depth[at]
-        out[1, row, col] = self.sigma[at]
+        uv, depth, sigma = self.uv[lo:hi], self.depth[lo:hi], self.sigma[lo:hi]
+        col = np.round((uv[:, 0] + 0.5) * w / self.size[0] - 0.5).astype(np.int64)
+        row = np.round((uv[:, 1] + 0.5) * h / self.size[1] - 0.5).astype(np.int64)
+        if self.wraps:
+            col %= w
+        inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+        pixel = (row * w + col)[inside]
+        depth, sigma = depth[inside], sigma[inside]
+        order = np.lexsort((depth, pixel))  # by pixel, the nearest first
+        pixel, depth, sigma = pixel[order], depth[order], sigma[order]
+        first = np.ones(len(pixel), dtype=bool)
+        first[1:] = pixel[1:] != pixel[:-1]
+        out[0].reshape(-1)[pixel[first]] = depth[first]
+        out[1].reshape(-1)[pixel[first]] = sigma[first]
         return out
 
     def relative(self, target: int, sources: list[int]) -> np.ndarray:
@@ -99,7 +107,7 @@ def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeomet
 
     Raises:
         DatasetError: a file missing or unreadable, a trajectory of another length than the ride, points or
-            keypoints that do not fit it (naming the file and the problem).
+            keypoints that do not fit it, a ride that does not move (naming the file and the problem).
     """
     folder = Path(folder)
     path = folder / "trajectory.txt"
@@ -108,6 +116,10 @@ def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeomet
     _, c2w = read_tum(path)  # DatasetError naming the file and the line
     if len(c2w) != frames:
         raise DatasetError(f"{path}: {len(c2w)} poses for a ride of {frames} frames")
+    lengths = np.linalg.norm(np.diff(c2w[:, :3, 3], axis=0), axis=1)
+    step = float(np.median(lengths)) if len(lengths) else 0.0
+    if not step > 0:
+        raise DatasetError(f"{path}: the ride does not move (median step {step})")
     try:
         pts = read_points(folder / "points.npz", frames, camera.size)
     except CylsfmError as exc:  # naming the file: a dataset's problem here
@@ -122,19 +134,24 @@ def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeomet
     if camera.wraps:
         off[:, 0] = np.minimum(off[:, 0], camera.width - off[:, 0])
     ok = camera.projectable(grid)[0, 0, :, 0].numpy() & (depth > 0) & (off.max(1) <= TOLERANCE)
-    sigma = _relative_sigma(x - centre, pts.point, len(pts.xyz), 1.0 / float(camera.fx))
-    return RideGeometry(c2w, pts.frame[ok], pts.uv[ok], depth[ok], sigma[ok], camera.size, pts.unit)
+    ok = np.nonzero(ok)[0]
+    sigma = _relative_sigma((x - centre)[ok], pts.point[ok], len(pts.xyz), 1.0 / float(camera.fx))
+    keep = ok[np.argsort(pts.frame[ok], kind="stable")]
+    sigma = sigma[np.argsort(pts.frame[ok], kind="stable")]
+    return RideGeometry(
+        c2w, pts.frame[keep], pts.uv[keep], depth[keep], sigma, camera.size, camera.wraps, pts.unit, step
+    )
 
 
 def _relative_sigma(rays: np.ndarray, point: np.ndarray, n_points: int, pixel: float) -> np.ndarray:
     """Each observation's relative depth uncertainty ``[N]`` from its point's parallax: the widest angle
-    between the rays ``[N,3]`` (from the observing frames' centres to the point) and the point's first
-    ray, for keypoints of :data:`KEYPOINT_PIXELS` pixels of ``pixel`` radians."""
+    (at most 90 degrees) between the rays ``[N,3]`` (from the observing frames' centres to the point) and
+    the point's first ray, for keypoints of :data:`KEYPOINT_PIXELS` pixels of ``pixel`` radians."""
     unit = rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
     first = np.zeros((n_points, 3))
     ids, at = np.unique(point, return_index=True)  # each point's first observation (in file order)
     first[ids] = unit[at]
-    cos = np.clip(np.einsum("ni,ni->n", unit, first[point]), -1.0, 1.0)
+    cos = np.clip(np.einsum("ni,ni->n", unit, first[point]), 0.0, 1.0)  # beyond 90 degrees: as at 90
     widest = np.ones(n_points)
     np.minimum.at(widest, point, cos)
     sine = np.sqrt(np.maximum(1.0 - widest**2, 1e-12))

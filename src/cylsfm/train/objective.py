@@ -33,7 +33,7 @@ class Batch:
         camera: the images' camera (batched intrinsics).
         mask: ``[B,1,H,W]`` or ``[1,1,H,W]`` weights of the pixels to use, or ``None`` (all).
         sfm: the rides' own adjusted geometry, or ``None``: ``(depth [B,2,H,W], T_tgt_to_src [B,S,4,4],
-            valid [B,S])`` (:class:`~cylsfm.data.SequenceDataset`'s ``sfm_*`` keys).
+            step [B,S])`` (:class:`~cylsfm.data.SequenceDataset`'s ``sfm_*`` keys).
     """
 
     target: Tensor
@@ -66,7 +66,7 @@ def batch_on(sample: dict[str, Any], device: torch.device, fov: float, channels_
     mask = sample["mask"].to(device) if "mask" in sample else None
     sfm = None
     if "sfm_depth" in sample:
-        sfm = tuple(sample[k].to(device) for k in ("sfm_depth", "sfm_pose", "sfm_valid"))
+        sfm = tuple(sample[k].to(device) for k in ("sfm_depth", "sfm_pose", "sfm_step"))
     if fov < 360:
         x0, x1 = cam.index(0).crop_window(fov)
         cam = cam.crop(fov)
@@ -125,15 +125,15 @@ class Objective:
         target = batch.target.float().contiguous()
         warp_poses, own = poses, {}
         if batch.sfm is not None:
-            sfm_depth, sfm_pose, valid = (t.float() for t in batch.sfm)
+            sfm_depth, sfm_pose, step = (t.float() for t in batch.sfm)
             if batch.mask is not None:  # no point on an occluder
                 sfm_depth = sfm_depth * (batch.mask > 0.5)
             if cfg.sfm_synthesis:
-                warp_poses = torch.where(valid[..., None, None] > 0, sfm_pose, poses)
+                warp_poses = torch.where(step[..., None, None] > 0, sfm_pose, poses)
             if cfg.sfm_depth_weight > 0:
                 own["sfm_depth"] = cfg.sfm_depth_weight * sparse_depth_term(disps[0], sfm_depth)
             if cfg.sfm_pose_weight > 0:
-                own["sfm_pose"] = cfg.sfm_pose_weight * sfm_pose_term(poses, sfm_pose, valid)
+                own["sfm_pose"] = cfg.sfm_pose_weight * sfm_pose_term(poses, sfm_pose, step)
         out = view_synthesis_loss(
             target,
             batch.sources.float(),

@@ -13,10 +13,7 @@ size=$1; minutes=$2; seed=${3:-0}
 bin=.venv/bin
 out=experiments/out
 data=$out/data512
-if [ ! -f "$data/splits/default/test.txt" ]; then
-  $bin/cylsfm synth "$data" --sequences 16 --frames 150 --width 512 --height 128 --seed 0 --overwrite
-  $bin/python -c "from cylsfm.data.splits import make_splits; make_splits('$data', mode='sequence', fractions=(12/16, 1/16, 3/16), seed=0)"
-fi
+. experiments/benchmark_data512.sh
 run=$out/recipe-$size-${minutes}m-s$seed
 if [ ! -f "$run/checkpoints/latest.pt" ]; then
   $bin/cylsfm train --data "$data" --out "$run" --size "$size" --minutes "$minutes" --seed "$seed" --no-progress

@@ -77,6 +77,7 @@ def train_rounds(
             continue  # done before the run was interrupted
         if stage == "geometry" and _out_of_time(cfg, state):
             state["stopped"] = "minutes"  # no time left for another pass and its training
+            _save_state(run, state)
             break
         started = time.monotonic()
         if stage == "train":
@@ -99,7 +100,6 @@ def train_rounds(
         state["stages"].append(record)
         state["seconds"] += time.monotonic() - started
         _save_state(run, state)
-    _save_state(run, state)
     return _summary(run, state, steps)
 
 

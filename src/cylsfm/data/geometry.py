@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from ..errors import CylsfmError
-from ..geometry import Camera
+from ..geometry import Camera, invert
 from .io import DatasetError, read_tum
 from .points import read_points
 
@@ -92,9 +92,7 @@ class RideGeometry:
 
     def relative(self, target: int, sources: list[int]) -> np.ndarray:
         """``float64 [S,4,4]`` ``T_target_to_source`` for each source frame (``p_s = T p_t``)."""
-        c2w_t = self.c2w[target]
-        w2c_s = np.linalg.inv(self.c2w[np.asarray(sources, dtype=np.int64)])
-        return w2c_s @ c2w_t
+        return invert(self.c2w[np.asarray(sources, dtype=np.int64)]) @ self.c2w[target]
 
 
 def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeometry:
@@ -136,8 +134,8 @@ def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeomet
     ok = camera.projectable(grid)[0, 0, :, 0].numpy() & (depth > 0) & (off.max(1) <= TOLERANCE)
     ok = np.nonzero(ok)[0]
     sigma = _relative_sigma((x - centre)[ok], pts.point[ok], len(pts.xyz), 1.0 / float(camera.fx))
-    keep = ok[np.argsort(pts.frame[ok], kind="stable")]
-    sigma = sigma[np.argsort(pts.frame[ok], kind="stable")]
+    order = np.argsort(pts.frame[ok], kind="stable")  # by frame, for depth_map's search
+    keep, sigma = ok[order], sigma[order]
     return RideGeometry(
         c2w, pts.frame[keep], pts.uv[keep], depth[keep], sigma, camera.size, camera.wraps, pts.unit, step
     )

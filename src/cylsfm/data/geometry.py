@@ -24,9 +24,9 @@ import torch
 from ..errors import CylsfmError
 from ..geometry import Camera, invert
 from .io import DatasetError, read_tum
-from .points import read_points
+from .points import SparsePoints, read_points
 
-__all__ = ["DEPTH_FLOOR", "KEYPOINT_PIXELS", "TOLERANCE", "RideGeometry", "load_geometry"]
+__all__ = ["DEPTH_FLOOR", "KEYPOINT_PIXELS", "TOLERANCE", "RideGeometry", "load_geometry", "ride_geometry"]
 
 #: A keypoint's noise, in pixels of the ride's own frames (the bundle adjustment's).
 KEYPOINT_PIXELS = 0.3
@@ -45,6 +45,8 @@ class RideGeometry:
     Attributes:
         c2w: ``float64 [M,4,4]`` camera-to-world poses of the ride's frames, in its unit.
         frame: ``int64 [N]`` the frame of each observation (ascending).
+        local: ``float64 [N,3]`` its point in that frame's camera axes (x right, y down, z forward), in the
+            ride's unit: what any other camera model with the same centre sees of it.
         uv: ``float64 [N,2]`` where that frame saw its point, in the ride's own pixels (``size``).
         depth: ``float64 [N]`` the point's depth from that frame in the camera model's sense
             (``sqrt(x^2 + z^2)`` in the frame's camera axes for a cylinder), in the ride's unit; all positive.
@@ -56,6 +58,7 @@ class RideGeometry:
 
     c2w: np.ndarray
     frame: np.ndarray
+    local: np.ndarray
     uv: np.ndarray
     depth: np.ndarray
     sigma: np.ndarray
@@ -114,14 +117,22 @@ def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeomet
     _, c2w = read_tum(path)  # DatasetError naming the file and the line
     if len(c2w) != frames:
         raise DatasetError(f"{path}: {len(c2w)} poses for a ride of {frames} frames")
-    lengths = np.linalg.norm(np.diff(c2w[:, :3, 3], axis=0), axis=1)
-    step = float(np.median(lengths)) if len(lengths) else 0.0
-    if not step > 0:
-        raise DatasetError(f"{path}: the ride does not move (median step {step})")
     try:
         pts = read_points(folder / "points.npz", frames, camera.size)
     except CylsfmError as exc:  # naming the file: a dataset's problem here
         raise DatasetError(str(exc)) from None
+    geometry = ride_geometry(c2w, pts, camera)
+    if not geometry.step > 0:
+        raise DatasetError(f"{path}: the ride does not move (median step {geometry.step})")
+    return geometry
+
+
+def ride_geometry(c2w: np.ndarray, pts: SparsePoints, camera: Camera) -> RideGeometry:
+    """The geometry of a ride posed by ``c2w`` ``[M,4,4]`` with the adjusted points and tracks ``pts`` in
+    the same world and unit, seen by ``camera`` (at the frames' own size): the observations that it
+    explains (as :func:`load_geometry`), by frame."""
+    lengths = np.linalg.norm(np.diff(c2w[:, :3, 3], axis=0), axis=1)
+    step = float(np.median(lengths)) if len(lengths) else 0.0
     x = pts.xyz[pts.point]  # [N,3] world
     centre = c2w[pts.frame, :3, 3]
     local = np.einsum("nji,nj->ni", c2w[pts.frame, :3, :3], x - centre)  # R^T (X - c)
@@ -137,8 +148,9 @@ def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeomet
     order = np.argsort(pts.frame[ok], kind="stable")  # by frame, for depth_map's search
     keep, sigma = ok[order], sigma[order]
     return RideGeometry(
-        c2w, pts.frame[keep], pts.uv[keep], depth[keep], sigma, camera.size, camera.wraps, pts.unit, step
-    )
+        c2w, pts.frame[keep], local[keep], pts.uv[keep], depth[keep], sigma, camera.size, camera.wraps,
+        pts.unit, step,
+    )  # fmt: skip
 
 
 def _relative_sigma(rays: np.ndarray, point: np.ndarray, n_points: int, pixel: float) -> np.ndarray:

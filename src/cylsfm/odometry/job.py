@@ -213,14 +213,19 @@ def _identity(
 def _state_identity(identity: dict[str, Any], opt: OdometrySettings) -> dict[str, Any]:
     """What decides the saved progress: the tracking's identity (the loops keep their own key in the
     state: other loop settings look again on the same tracking) and which depth files are written (in
-    network units, or kept apart until the scale to metres is known: so that scale counts)."""
+    network units, or kept apart until their scale is known, in metres or the adjusted points': so that
+    scale counts; scaled by the points, the depth files depend on every stage)."""
     later = ("camera_height", "steady_height", "loop", "bundle")  # stages after the tracking
+    if opt.save_depth_maps and opt.adjusts:  # the depth files are scaled by the points: every stage counts
+        later = ()
     tracking = {k: v for k, v in identity.items() if k not in later}
     return {
         **tracking,
         "ground_fit": opt.camera_height is not None or opt.steady_height,  # every frame's ground height
         "depth_maps": opt.save_depth_maps,
-        "depth_scale": opt.camera_height if opt.save_depth_maps else None,
+        "depth_scale": (
+            {"camera_height": opt.camera_height, "points": opt.adjusts} if opt.save_depth_maps else None
+        ),
     }
 
 

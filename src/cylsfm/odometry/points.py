@@ -17,9 +17,11 @@ from ..data.points import SparsePoints, read_points
 __all__ = ["SparsePoints", "read_points", "write_points"]
 
 
-def write_points(out: Path, points: np.ndarray, colours: np.ndarray, tracks: np.ndarray, unit: str) -> None:
+def write_points(
+    out: Path, points: np.ndarray, colours: np.ndarray, tracks: np.ndarray, unit: str
+) -> SparsePoints:
     """Write ``out/points.ply`` and ``out/points.npz`` atomically: ``points [P,3]`` (the trajectory's world
-    and ``unit``), ``colours uint8 [P,3]``, ``tracks [N,4]`` (frame, point, u, v)."""
+    and ``unit``), ``colours uint8 [P,3]``, ``tracks [N,4]`` (frame, point, u, v); returns what it wrote."""
     from ..export.mesh import Mesh, write_ply
 
     xyz = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -31,14 +33,10 @@ def write_points(out: Path, points: np.ndarray, colours: np.ndarray, tracks: np.
     ]
     write_ply(cloud, out / "points.ply", comments, points=True)
     tracks = np.asarray(tracks, dtype=np.float64).reshape(-1, 4)
-    buf = io.BytesIO()
-    np.savez(
-        buf,
-        xyz=xyz,
-        rgb=rgb,
-        frame=tracks[:, 0].astype(np.int64),
-        point=tracks[:, 1].astype(np.int64),
-        uv=tracks[:, 2:],
-        unit=np.array(unit),
+    sparse = SparsePoints(
+        xyz, rgb, tracks[:, 0].astype(np.int64), tracks[:, 1].astype(np.int64), tracks[:, 2:], unit
     )
+    buf = io.BytesIO()
+    np.savez(buf, xyz=xyz, rgb=rgb, frame=sparse.frame, point=sparse.point, uv=sparse.uv, unit=np.array(unit))
     atomic_write_bytes(out / "points.npz", buf.getvalue())
+    return sparse

@@ -10,7 +10,8 @@ reach them, mask, depth source, fingerprints) and goes through named stages, eac
    (:func:`~cylsfm.odometry.loops.graph.closed_steps`) with the accepted loops;
    **bundle adjustment** (``bundle``, :mod:`~cylsfm.odometry.bundle.stage`): poses and sparse points
    adjusted to SIFT features matched across frames;
-4. **scale** (:mod:`~cylsfm.odometry.scale`): metres from the camera height;
+4. **scale** (:mod:`~cylsfm.odometry.scale`): metres from the camera height; the depth files in the
+   trajectory's unit, each frame's brought to the adjusted points it sees;
 5. **write** (:mod:`~cylsfm.odometry.write`): the trajectory, the top view, the measures, the summary.
 
 Each stage returns data (steps, loops with their reason codes, its seconds); the saved progress is the
@@ -29,7 +30,7 @@ from .bundle.stage import adjust_ride
 from .job import Job, resolve_job
 from .loops import closed_steps, find_loops
 from .points import write_points
-from .scale import scale_steps, steady_steps
+from .scale import scale_depth_maps, scale_steps, steady_steps
 from .settings import OdometrySettings
 from .state import STATE_FILE, State
 from .track import track
@@ -111,7 +112,10 @@ def run_job(job: Job, started: float | None = None) -> OdometryResult:
         adjusted=bundled.steps if bundled is not None else None,
     )
     bundle = bundled.summary if bundled is not None else None
+    sparse = None
     if bundled is not None:  # the points in the trajectory's unit
         points = bundled.points * (scaled.metres_per_unit or 1.0)
-        write_points(job.out, points, bundled.colours, bundled.tracks, scaled.unit)
-    return write_outputs(job, state, steps, scaled, loops, bundle, timings, time.perf_counter() - started)
+        sparse = write_points(job.out, points, bundled.colours, bundled.tracks, scaled.unit)
+    depth_scale = scale_depth_maps(job, state, scaled, sparse)
+    seconds = time.perf_counter() - started
+    return write_outputs(job, state, steps, scaled, loops, bundle, timings, seconds, depth_scale)

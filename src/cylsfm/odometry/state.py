@@ -52,8 +52,11 @@ class State:
     tail_images: list[np.ndarray] = field(default_factory=list)
     tail_depths: list[np.ndarray] = field(default_factory=list)
     finished: bool = False
-    #: the depth files in metres are all written
+    #: the depth files in their final unit are all written (from the maps waiting in network units)
     rescaled: bool = False
+    #: each frame's factor to the adjusted points and the points it was measured on (empty: none)
+    depth_factors: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    depth_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     #: each frame's place descriptor (:func:`~cylsfm.geometry.place.place_descriptor`) and median depth
     places: list[np.ndarray] = field(default_factory=list)
     reach: list[float] = field(default_factory=list)
@@ -96,6 +99,8 @@ class State:
             "tail_depths": _stack(self.tail_depths, (0, 0, 0)).astype(np.float32),
             "finished": np.array(self.finished),
             "rescaled": np.array(self.rescaled),
+            "depth_factors": np.asarray(self.depth_factors, dtype=np.float64),
+            "depth_points": np.asarray(self.depth_points, dtype=np.int64),
             "mount": np.array(self.mount, dtype=np.float64),
             "places": _stack(self.places, (0,)).astype(np.float32),
             "reach": np.array(self.reach, dtype=np.float64),
@@ -132,6 +137,9 @@ class State:
                 state.tail_index = [int(i) for i in z["tail_index"]]
                 state.finished = bool(z["finished"])
                 state.rescaled = bool(z["rescaled"])
+                if "depth_factors" in z.files:
+                    state.depth_factors = np.asarray(z["depth_factors"], dtype=np.float64)
+                    state.depth_points = np.asarray(z["depth_points"], dtype=np.int64)
                 yaw, agreement, pairs = (float(v) for v in z["mount"])
                 state.mount = (yaw, agreement, int(pairs))
                 state.places = list(z["places"])

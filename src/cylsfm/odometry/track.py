@@ -377,7 +377,8 @@ def track(job: Job, state: State) -> Tracked:
     opt, dest = job.settings, job.out
     writer = None
     if opt.save_depth_maps:
-        writer = depth_writer(dest / (RAW_DEPTH if opt.camera_height else "depth"), state.stems)
+        later = opt.camera_height is not None or opt.adjusts  # scaled once the metres or the points are known
+        writer = depth_writer(dest / (RAW_DEPTH if later else "depth"), state.stems)
     options = TrackOptions(
         refine=opt.refine,
         align=opt.align,

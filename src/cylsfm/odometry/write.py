@@ -15,6 +15,7 @@ from .._version import __version__
 from ..atomic import atomic_write_text
 from ..data.io import write_tum
 from ..evaluate.pose_metrics import chain_poses
+from .depth import DepthScale
 from .loops import Loop
 from .mount import mount_summary
 from .report import ride_metrics, top_view
@@ -85,10 +86,12 @@ def write_outputs(
     bundle: dict[str, float] | None,
     timings: dict[str, float],
     seconds: float,
+    depth_scale: DepthScale | None = None,
 ) -> OdometryResult:
     """Write ``trajectory.txt`` (and with ``refine`` ``trajectory_network.txt``), ``trajectory.png``,
     ``metrics.json`` (with ground truth) and ``odometry.json``; ``bundle``: the bundle adjustment's counts
-    (``None``: not adjusted); ``seconds``: the run's time so far."""
+    (``None``: not adjusted); ``seconds``: the run's time so far; ``depth_scale``: the depth files'
+    factors to the adjusted points (``None``: one factor for all)."""
     dest, opt = job.out, job.settings
     c2w, times = chain_poses(scaled.steps), np.asarray(state.times)
     summary_of_loops = loop_summary(loops)
@@ -124,6 +127,7 @@ def write_outputs(
         "loops": summary_of_loops,
         "bundle": bundle,
         "depth_maps": opt.save_depth_maps,
+        "depth_scale": depth_scale.to_dict() if depth_scale is not None else None,
         "fingerprint": job.fingerprint,
         "settings": job.identity,
     }

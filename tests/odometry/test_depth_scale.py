@@ -150,3 +150,50 @@ def test_odometry_depth_files_share_the_trajectory_s_scale(ckpt, tmp_path, monke
     odometry(seq, ckpt, tmp_path / "plain", OdometrySettings(bundle=False, **base))
     assert spread(tmp_path / "plain")[0] > 0.1
     assert json.loads((tmp_path / "plain" / "odometry.json").read_text())["depth_scale"] is None
+
+
+def test_predict_writes_each_frame_in_the_odometry_s_scale(ckpt, tmp_path):
+    """``predict --odometry``: each frame's depth times its own factor to the odometry's adjusted points;
+    an odometry without the adjustment, another checkpoint, or a camera height beside
+    it is refused with a message naming the file."""
+    from cylsfm.data.format import load_depth
+    from cylsfm.data.synth import generate_dataset
+    from cylsfm.errors import InputError
+    from cylsfm.odometry import OdometrySettings, odometry
+    from cylsfm.predict import predict
+    from helpers import untrained_checkpoint
+
+    generate_dataset(
+        tmp_path / "data", sequences=1, frames=12, width=256, height=64, seed=4, workers=1, progress=False
+    )
+    seq = tmp_path / "data" / "seq_000"
+    base = dict(refine=True, save_depth_maps=True, device="cpu", progress=False)
+    odometry(seq, ckpt, tmp_path / "odo", OdometrySettings(bundle=True, **base))
+    factors = json.loads((tmp_path / "odo" / "odometry.json").read_text())["depth_scale"]["factors"]
+    assert len(factors) == 12 and np.std(factors) > 0
+    predict(ckpt, [seq / "images"], tmp_path / "pred", device="cpu", png=False, progress=False,
+            odometry=tmp_path / "odo")  # fmt: skip
+    predict(ckpt, [seq / "images"], tmp_path / "raw", device="cpu", png=False, progress=False)
+    stems = sorted(p.stem for p in (tmp_path / "odo" / "depth").glob("*.npy"))
+    assert len(stems) == 12
+    for stem, factor in zip(stems, factors, strict=True):  # each frame times its own factor
+        ours = load_depth(tmp_path / "pred" / "images" / f"{stem}.npy")
+        np.testing.assert_allclose(
+            ours, load_depth(tmp_path / "raw" / "images" / f"{stem}.npy") * factor, rtol=1e-5
+        )
+    scale = json.loads((tmp_path / "pred" / "images" / "scale.json").read_text())
+    assert scale["factors"] == pytest.approx(factors) and "adjusted points" in scale["note"]
+
+    odometry(seq, ckpt, tmp_path / "plain", OdometrySettings(bundle=False, **base))
+    other = untrained_checkpoint(tmp_path / "other", 256, 64)
+    for given, kwargs, message in [
+        (tmp_path / "plain", {}, r"plain.odometry\.json: has no per-frame depth scale"),
+        (tmp_path / "odo", {"camera_height": 1.5}, "without camera_height"),
+        (tmp_path / "missing", {}, r"missing.odometry\.json: not found"),
+    ]:
+        with pytest.raises(InputError, match=message):
+            predict(ckpt, [seq / "images"], tmp_path / "p2", device="cpu", png=False, progress=False,
+                    odometry=given, **kwargs)  # fmt: skip
+    with pytest.raises(InputError, match="another checkpoint"):
+        predict(other, [seq / "images"], tmp_path / "p3", device="cpu", png=False, progress=False,
+                odometry=tmp_path / "odo")  # fmt: skip

@@ -46,6 +46,13 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
         "an input (fitted in up to 32 of its frames); default: the network's units. OUT/NAME/scale.json "
         "says which",
     )
+    p.add_argument(
+        "--odometry",
+        metavar="DIR",
+        help="the one input's output of cylsfm odometry --refine --depth (same checkpoint and --fps): every "
+        "frame's depth in the trajectory's scale and unit, brought to the adjusted points it sees (the "
+        "network's own scale wanders by several percent from frame to frame)",
+    )
 
 
 @command("predict", "depth maps for panoramic images, folders and videos with a trained model", _predict_args)
@@ -65,6 +72,7 @@ def run_predict(args: argparse.Namespace) -> int:
         fps=args.fps,
         mask=args.mask,
         camera_height=args.camera_height,
+        odometry=args.odometry,
     )
     videos = f" and {len(summary.videos)} preview video(s)" if summary.videos else ""
     kept = f" ({summary.resumed} of them kept from an interrupted run)" if summary.resumed else ""

@@ -28,7 +28,7 @@ from ..model import Predictor
 from ..model.checkpoint import checkpoint_id
 from ..model.plan import Plan, network_images, network_mask, plan_input
 from ..runtime import file_id, fingerprint, progress_bar
-from .scale import RideScale, network_depth, ride_scale
+from .scale import RideScale, network_depth, odometry_scale, ride_scale
 
 __all__ = ["PredictSummary", "RideScale", "predict", "ride_scale"]
 
@@ -81,6 +81,7 @@ def predict(
     full_resolution: bool = False,
     mask: str | os.PathLike[str] | None = None,
     camera_height: float | None = None,
+    odometry: str | os.PathLike[str] | None = None,
 ) -> PredictSummary:
     """Predict depth for images, image folders and videos; see :mod:`cylsfm.predict` for the outputs.
 
@@ -104,6 +105,9 @@ def predict(
             and its depth is written as 0 (unknown).
         camera_height: the camera's height above a level ground in metres: every input's depth is written
             in metres, by one factor for the whole input (:func:`ride_scale`); ``None``: network units.
+        odometry: the one input's ``cylsfm odometry --refine --depth`` output (the same checkpoint and
+            ``fps``): every frame's depth in the trajectory's scale and unit, brought to the adjusted points
+            it sees (:func:`~cylsfm.predict.scale.odometry_scale`).
 
     Every frame of an input is in one scale (never normalised frame by frame), which ``OUT/NAME/scale.json``
     states; its pictures and video preview share one colour range.
@@ -112,12 +116,17 @@ def predict(
     already written (in whole batches) and predicts the rest, as an uninterrupted run would.
 
     Raises:
-        InputError: ``batch_size`` below 1, ``fps`` not a positive number.
+        InputError: ``batch_size`` below 1, ``fps`` not a positive number, ``odometry`` with
+            ``camera_height`` or with several inputs, or an odometry output that does not fit the input.
         CylsfmError: an input is missing, unreadable or corrupt, or its camera does not suit the model;
             the message names the file. Every input's cameras are checked before anything is written.
     """
     _check_options(batch_size, fps)
     sources = discover_inputs(inputs)
+    if odometry is not None and (camera_height is not None or len(sources) != 1):
+        raise InputError(
+            "odometry: give one input, without camera_height (the odometry's output has the ride's scale)"
+        )
     cam, camera_path = _camera_arg(camera)
     predictor = (
         checkpoint
@@ -134,6 +143,7 @@ def predict(
     options = {"batch_size": batch_size, "png": png, "full_resolution": full_resolution, "fps": fps}
     options["mask"] = file_id(Path(mask)) if mask is not None else None
     options["camera_height"] = camera_height
+    options["odometry"] = file_id(Path(odometry) / "odometry.json") if odometry is not None else None
     resume = _same_settings(out / MANIFEST, _settings(checkpoint, sources, cam, options))
     total = expected_frames(sources, fps)
     bar = progress_bar(total=total, desc="predict", unit="frame", enabled=progress, leave=True)
@@ -141,7 +151,11 @@ def predict(
     try:
         with torch.inference_mode():
             for source in sources:
-                scale = _scale_of(source, plan_for, predictor, fps, camera_height, out)
+                scale = ride_scale(source, plan_for, predictor, fps, camera_height)
+                if odometry is not None:
+                    given = predictor.models.path if isinstance(checkpoint, Predictor) else checkpoint
+                    scale = odometry_scale(Path(odometry), source, checkpoint_id(given), fps, scale)
+                _write_scale(out, source, scale)
                 outputs = _Outputs(png, full_resolution, resume, scale)
                 _run_source(source, plan_for, predictor, out, batch_size, outputs, fps, bar, summary)
     finally:
@@ -214,11 +228,13 @@ def _run_source(
         if batch:
             h, w = batch[0][1].shape[:2]
             plan = plan_for(source, (w, h))
+            first = summary.frames[source.name]  # the batch's first frame's index in the input
             if outputs.resume and all(outputs.written(dest, stem) for stem, _ in batch):
                 _preview_batch(batch, plan, predictor, dest, writer, outputs.scale.limits)  # (same values)
                 summary.resumed += len(batch)
             else:
-                _run_batch(batch, plan, plan_for.mask(source, (w, h)), predictor, dest, outputs, writer)
+                seen = plan_for.mask(source, (w, h))
+                _run_batch(batch, first, plan, seen, predictor, dest, outputs, writer)
             summary.frames[source.name] += len(batch)
             bar.update(len(batch))
             batch.clear()
@@ -241,6 +257,7 @@ def _run_source(
 
 def _run_batch(
     batch: list[tuple[str, np.ndarray]],
+    first: int,
     plan: Plan,
     seen: torch.Tensor | None,
     predictor: Predictor,
@@ -248,13 +265,14 @@ def _run_batch(
     outputs: _Outputs,
     writer: VideoWriter | None,
 ) -> None:
-    """Depth of one batch of frames of one size: ``DEST/FRAME.npy`` (and the pictures, the full-resolution
-    depth, the video preview)."""
+    """Depth of one batch of frames of one size, the input's frames ``first, first + 1, ...``:
+    ``DEST/FRAME.npy`` (and the pictures, the full-resolution depth, the video preview)."""
     images = network_images([rgb for _, rgb in batch], plan, predictor.device)
     cam = plan.network_input
     win = predictor.window(cam)
     depth, _ = network_depth(images, plan, seen, predictor)
-    depth = depth * np.float32(outputs.scale.factor)
+    factors = [outputs.scale.factor_of(first + i) for i in range(len(batch))]
+    depth = depth * np.asarray(factors, dtype=np.float32)[:, None, None]
     shown = _to_uint8(images if win is None else images[..., win[0] : win[1]])
     unit, limits = outputs.scale.unit, outputs.scale.limits
     full = _full_resolution(depth, plan, cam, predictor.fov) if outputs.full else None
@@ -290,19 +308,10 @@ def _preview_batch(
         writer.write(side_by_side([shown[i], colorize_depth(depth, *(limits or (None, None)))]))
 
 
-def _scale_of(
-    source: InputSource,
-    plans: _Plans,
-    predictor: Predictor,
-    fps: float | None,
-    height: float | None,
-    out: Path,
-) -> RideScale:
-    """The input's one scale (:func:`ride_scale`), said in the log (on the terminal from the command line) and in ``OUT/NAME/scale.json``."""
-    scale = ride_scale(source, plans, predictor, fps, height)
+def _write_scale(out: Path, source: InputSource, scale: RideScale) -> None:
+    """``OUT/NAME/scale.json``, and the scale in the log."""
     _write_if_changed(out / source.name / "scale.json", json.dumps(scale.to_dict(), indent=1) + "\n")
     log.info("%s: %s", source.name, scale.note)
-    return scale
 
 
 def _write_if_changed(path: Path, text: str) -> None:

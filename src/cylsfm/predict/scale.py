@@ -6,25 +6,33 @@ height above a level ground, one factor for the whole input turns it into metres
 the median of the ground heights fitted in up to :data:`SAMPLES` frames spread evenly over the input
 (:func:`~cylsfm.geometry.ground.ground_height`, :func:`~cylsfm.geometry.ground.metric_scale`). The same
 sample gives the pictures' and the preview's one colour range.
+
+The network's scale still wanders from frame to frame by several percent. Given the input's
+``cylsfm odometry --refine --depth`` output (with the bundle adjustment), every frame instead takes its
+factor to the adjusted points it sees, recorded there (:func:`odometry_scale`): the depth then shares the
+trajectory's one scale and unit by construction.
 """
 
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from ..data.inputs import InputSource, expected_frames, read_frames
+from ..errors import InputError
 from ..export.colorize import depth_limits
 from ..geometry import Camera, CylindricalCamera
 from ..geometry.ground import ground_height, metric_scale
 from ..model import Predictor
 from ..model.plan import Plan, network_images
 
-__all__ = ["SAMPLES", "RideScale", "network_depth", "ride_scale"]
+__all__ = ["SAMPLES", "RideScale", "network_depth", "odometry_scale", "ride_scale"]
 
 #: Frames of an input sampled for its scale and colour range.
 SAMPLES = 32
@@ -41,6 +49,7 @@ class RideScale:
         limits: the depths ``(vmin, vmax)`` of the brightest and darkest colours of every picture (in
             ``unit``), ``None`` when the sample has no valid depth.
         sampled: frames sampled; ``ground_fits``: of them, frames with a fitted ground.
+        factors: each frame's own factor, in the input's order, instead of ``factor`` (``None``: one for all).
     """
 
     factor: float
@@ -49,6 +58,21 @@ class RideScale:
     limits: tuple[float, float] | None
     sampled: int
     ground_fits: int | None = None
+    factors: tuple[float, ...] | None = None
+
+    def factor_of(self, index: int) -> float:
+        """Frame ``index``'s factor (its own, or the input's one).
+
+        Raises:
+            InputError: an input of more frames than its own factors.
+        """
+        if self.factors is None:
+            return self.factor
+        if index >= len(self.factors):
+            raise InputError(
+                f"frame {index + 1}: beyond the {len(self.factors)} frames of the odometry given"
+            )
+        return self.factors[index]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -58,6 +82,7 @@ class RideScale:
             "colour_range": list(self.limits) if self.limits else None,
             "frames_sampled": self.sampled,
             "ground_fits": self.ground_fits,
+            "factors": list(self.factors) if self.factors is not None else None,
         }
 
 
@@ -113,3 +138,51 @@ def ride_scale(
         f"above the ground fitted in {fits} of {len(depths)} frames sampled, median)"
     )
     return RideScale(factor, "metres", note, limits, len(depths), fits)
+
+
+def odometry_scale(
+    folder: Path, source: InputSource, checkpoint: str, fps: float | None, scale: RideScale
+) -> RideScale:
+    """``scale`` (the input's sample, for its colour range) with every frame's own factor to the adjusted
+    points of the input's odometry output ``folder`` (``odometry.json``: made with ``--refine --depth``
+    and the bundle adjustment, for this input, ``checkpoint`` (its identity) and ``fps``, every frame).
+
+    Raises:
+        InputError: no such output, or one made without the adjustment's depth factors, for another
+            input, checkpoint or frame rate, or for another number of frames (naming the file).
+    """
+    path = Path(folder) / "odometry.json"
+    try:
+        summary = json.loads(path.read_text())
+        settings, depth = summary["settings"], summary["depth_scale"]
+        unit = str(summary["unit"])
+    except FileNotFoundError:
+        raise InputError(f"{path}: not found; give the input's output of cylsfm odometry") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path}: not a summary of cylsfm odometry ({exc})") from None
+    if not depth:
+        raise InputError(
+            f"{path}: has no per-frame depth scale; make it with cylsfm odometry --refine --depth "
+            "(the bundle adjustment brings each frame's depth to its points)"
+        )
+    given = Path(str(settings.get("input"))).resolve()
+    if given not in (source.path.resolve(), source.path.resolve().parent):  # a dataset ride: its images/
+        raise InputError(f"{path}: made for {settings.get('input')}, not for {source.path}")
+    if settings.get("checkpoint") != checkpoint:
+        raise InputError(f"{path}: made with another checkpoint ({settings.get('checkpoint')})")
+    if settings.get("fps") != fps or settings.get("stride", 1) != 1:
+        raise InputError(
+            f"{path}: made from other frames (fps {settings.get('fps')}, stride {settings.get('stride')}); "
+            f"give the same --fps ({fps}) and every frame"
+        )
+    factors = tuple(float(f) for f in depth["factors"])
+    total = expected_frames([source], fps)
+    if total is not None and total != len(factors):
+        raise InputError(f"{path}: {len(factors)} frames, but {source.path} gives {total}")
+    median = float(np.median(factors))
+    limits = None if scale.limits is None else (scale.limits[0] * median, scale.limits[1] * median)
+    note = (
+        f"{unit}: the trajectory's one scale, each frame brought to the adjusted points of {folder} "
+        f"(factors median {median:.4g}, spread {depth['factor_cv']:.1%})"
+    )
+    return replace(scale, factor=median, unit=unit, note=note, limits=limits, factors=factors)

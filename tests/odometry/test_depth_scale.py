@@ -155,7 +155,7 @@ def test_odometry_depth_files_share_the_trajectory_s_scale(ckpt, tmp_path, monke
 def test_predict_writes_each_frame_in_the_odometry_s_scale(ckpt, tmp_path):
     """``predict --odometry``: each frame's depth times its own factor to the odometry's adjusted points;
     an odometry without the adjustment, another checkpoint, or a camera height beside
-    it is refused with a message naming the file."""
+    it is refused with a message naming the file, before anything is written."""
     from cylsfm.data.format import load_depth
     from cylsfm.data.synth import generate_dataset
     from cylsfm.errors import InputError
@@ -194,6 +194,7 @@ def test_predict_writes_each_frame_in_the_odometry_s_scale(ckpt, tmp_path):
         with pytest.raises(InputError, match=message):
             predict(ckpt, [seq / "images"], tmp_path / "p2", device="cpu", png=False, progress=False,
                     odometry=given, **kwargs)  # fmt: skip
+    assert not (tmp_path / "p2").exists()  # refused before anything is written
     with pytest.raises(InputError, match="another checkpoint"):
         predict(other, [seq / "images"], tmp_path / "p3", device="cpu", png=False, progress=False,
                 odometry=tmp_path / "odo")  # fmt: skip

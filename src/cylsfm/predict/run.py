@@ -28,7 +28,7 @@ from ..model import Predictor
 from ..model.checkpoint import checkpoint_id
 from ..model.plan import Plan, network_images, network_mask, plan_input
 from ..runtime import file_id, fingerprint, progress_bar
-from .scale import RideScale, network_depth, odometry_scale, ride_scale
+from .scale import RideScale, network_depth, odometry_factors, ride_scale
 
 __all__ = ["PredictSummary", "RideScale", "predict", "ride_scale"]
 
@@ -107,7 +107,7 @@ def predict(
             in metres, by one factor for the whole input (:func:`ride_scale`); ``None``: network units.
         odometry: the one input's ``cylsfm odometry --refine --depth`` output (the same checkpoint and
             ``fps``): every frame's depth in the trajectory's scale and unit, brought to the adjusted points
-            it sees (:func:`~cylsfm.predict.scale.odometry_scale`).
+            it sees (:func:`~cylsfm.predict.scale.odometry_factors`).
 
     Every frame of an input is in one scale (never normalised frame by frame), which ``OUT/NAME/scale.json``
     states; its pictures and video preview share one colour range.
@@ -133,6 +133,10 @@ def predict(
         if isinstance(checkpoint, Predictor)
         else Predictor.from_checkpoint(checkpoint, device, amp=amp)
     )
+    given = None  # the odometry's per-frame factors, checked before anything is written
+    if odometry is not None:
+        ident = checkpoint_id(predictor.models.path if isinstance(checkpoint, Predictor) else checkpoint)
+        given = odometry_factors(Path(odometry), sources[0], ident, fps)
     plan_for = _Plans(predictor, cam, camera_path, Path(mask) if mask is not None else None)
     for source in sources:  # refuse unsuitable inputs (and masks) before writing anything
         for size in source.sizes:
@@ -152,9 +156,8 @@ def predict(
         with torch.inference_mode():
             for source in sources:
                 scale = ride_scale(source, plan_for, predictor, fps, camera_height)
-                if odometry is not None:
-                    given = predictor.models.path if isinstance(checkpoint, Predictor) else checkpoint
-                    scale = odometry_scale(Path(odometry), source, checkpoint_id(given), fps, scale)
+                if given is not None:
+                    scale = given.scale(scale)
                 _write_scale(out, source, scale)
                 outputs = _Outputs(png, full_resolution, resume, scale)
                 _run_source(source, plan_for, predictor, out, batch_size, outputs, fps, bar, summary)

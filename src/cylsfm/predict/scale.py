@@ -9,7 +9,7 @@ sample gives the pictures' and the preview's one colour range.
 
 The network's scale still wanders from frame to frame by several percent. Given the input's
 ``cylsfm odometry --refine --depth`` output (with the bundle adjustment), every frame instead takes its
-factor to the adjusted points it sees, recorded there (:func:`odometry_scale`): the depth then shares the
+factor to the adjusted points it sees, recorded there (:func:`odometry_factors`): the depth then shares the
 trajectory's one scale and unit by construction.
 """
 
@@ -32,7 +32,7 @@ from ..geometry.ground import ground_height, metric_scale
 from ..model import Predictor
 from ..model.plan import Plan, network_images
 
-__all__ = ["SAMPLES", "RideScale", "network_depth", "odometry_scale", "ride_scale"]
+__all__ = ["SAMPLES", "OdometryFactors", "RideScale", "network_depth", "odometry_factors", "ride_scale"]
 
 #: Frames of an input sampled for its scale and colour range.
 SAMPLES = 32
@@ -140,12 +140,33 @@ def ride_scale(
     return RideScale(factor, "metres", note, limits, len(depths), fits)
 
 
-def odometry_scale(
-    folder: Path, source: InputSource, checkpoint: str, fps: float | None, scale: RideScale
-) -> RideScale:
-    """``scale`` (the input's sample, for its colour range) with every frame's own factor to the adjusted
-    points of the input's odometry output ``folder`` (``odometry.json``: made with ``--refine --depth``
-    and the bundle adjustment, for this input, ``checkpoint`` (its identity) and ``fps``, every frame).
+@dataclass(frozen=True)
+class OdometryFactors:
+    """Every frame's factor to the adjusted points, from an output of ``cylsfm odometry`` (``path``: its
+    ``odometry.json``), in the trajectory's ``unit``; ``spread``: the factors' coefficient of variation."""
+
+    path: Path
+    unit: str
+    factors: tuple[float, ...]
+    spread: float
+
+    def scale(self, scale: RideScale) -> RideScale:
+        """``scale`` (the input's sample, for its colour range) with these factors, frame by frame."""
+        median = float(np.median(self.factors))
+        limits = None if scale.limits is None else (scale.limits[0] * median, scale.limits[1] * median)
+        note = (
+            f"{self.unit}: the trajectory's one scale, each frame brought to the adjusted points of "
+            f"{self.path.parent} (factors median {median:.4g}, spread {self.spread:.1%})"
+        )
+        return replace(scale, factor=median, unit=self.unit, note=note, limits=limits, factors=self.factors)
+
+
+def odometry_factors(
+    folder: Path, source: InputSource, checkpoint: str, fps: float | None
+) -> OdometryFactors:
+    """The per-frame depth factors of the input's odometry output ``folder`` (``odometry.json``: made with
+    ``--refine --depth`` and the bundle adjustment, for this input, ``checkpoint`` (its identity) and
+    ``fps``, every frame).
 
     Raises:
         InputError: no such output, or one made without the adjustment's depth factors, for another
@@ -156,6 +177,8 @@ def odometry_scale(
         summary = json.loads(path.read_text())
         settings, depth = summary["settings"], summary["depth_scale"]
         unit = str(summary["unit"])
+        factors = tuple(float(f) for f in depth["factors"]) if depth else ()
+        spread = float(depth["factor_cv"]) if depth else 0.0
     except FileNotFoundError:
         raise InputError(f"{path}: not found; give the input's output of cylsfm odometry") from None
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -175,14 +198,9 @@ def odometry_scale(
             f"{path}: made from other frames (fps {settings.get('fps')}, stride {settings.get('stride')}); "
             f"give the same --fps ({fps}) and every frame"
         )
-    factors = tuple(float(f) for f in depth["factors"])
     total = expected_frames([source], fps)
     if total is not None and total != len(factors):
         raise InputError(f"{path}: {len(factors)} frames, but {source.path} gives {total}")
-    median = float(np.median(factors))
-    limits = None if scale.limits is None else (scale.limits[0] * median, scale.limits[1] * median)
-    note = (
-        f"{unit}: the trajectory's one scale, each frame brought to the adjusted points of {folder} "
-        f"(factors median {median:.4g}, spread {depth['factor_cv']:.1%})"
-    )
-    return replace(scale, factor=median, unit=unit, note=note, limits=limits, factors=factors)
+    if not all(math.isfinite(f) and f > 0 for f in factors):
+        raise InputError(f"{path}: depth factors that are not positive numbers")
+    return OdometryFactors(path, unit, factors, spread)

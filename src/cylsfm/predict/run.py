@@ -28,7 +28,7 @@ from ..model import Predictor
 from ..model.checkpoint import checkpoint_id
 from ..model.plan import Plan, network_images, network_mask, plan_input
 from ..runtime import file_id, fingerprint, progress_bar
-from .scale import RideScale, network_depth, odometry_factors, ride_scale
+from .scale import OdometryFactors, RideScale, network_depth, odometry_factors, ride_scale
 
 __all__ = ["PredictSummary", "RideScale", "predict", "ride_scale"]
 
@@ -105,9 +105,8 @@ def predict(
             and its depth is written as 0 (unknown).
         camera_height: the camera's height above a level ground in metres: every input's depth is written
             in metres, by one factor for the whole input (:func:`ride_scale`); ``None``: network units.
-        odometry: the one input's ``cylsfm odometry --refine --depth`` output (the same checkpoint and
-            ``fps``): every frame's depth in the trajectory's scale and unit, brought to the adjusted points
-            it sees (:func:`~cylsfm.predict.scale.odometry_factors`).
+        odometry: the one input's ``cylsfm odometry --refine --depth`` output: every frame's depth in the
+            trajectory's scale, brought to its adjusted points (:func:`~.scale.odometry_factors`).
 
     Every frame of an input is in one scale (never normalised frame by frame), which ``OUT/NAME/scale.json``
     states; its pictures and video preview share one colour range.
@@ -116,38 +115,25 @@ def predict(
     already written (in whole batches) and predicts the rest, as an uninterrupted run would.
 
     Raises:
-        InputError: ``batch_size`` below 1, ``fps`` not a positive number, ``odometry`` with
-            ``camera_height`` or with several inputs, or an odometry output that does not fit the input.
+        InputError: ``batch_size`` below 1, ``fps`` not positive, an ``odometry`` that does not fit.
         CylsfmError: an input is missing, unreadable or corrupt, or its camera does not suit the model;
             the message names the file. Every input's cameras are checked before anything is written.
     """
     _check_options(batch_size, fps)
     sources = discover_inputs(inputs)
-    if odometry is not None and (camera_height is not None or len(sources) != 1):
-        raise InputError(
-            "odometry: give one input, without camera_height (the odometry's output has the ride's scale)"
-        )
     cam, camera_path = _camera_arg(camera)
-    predictor = (
-        checkpoint
-        if isinstance(checkpoint, Predictor)
-        else Predictor.from_checkpoint(checkpoint, device, amp=amp)
-    )
-    given = None  # the odometry's per-frame factors, checked before anything is written
-    if odometry is not None:
-        ident = checkpoint_id(predictor.models.path if isinstance(checkpoint, Predictor) else checkpoint)
-        given = odometry_factors(Path(odometry), sources[0], ident, fps)
+    ready = isinstance(checkpoint, Predictor)
+    predictor = checkpoint if ready else Predictor.from_checkpoint(checkpoint, device, amp=amp)
+    given = _odometry(odometry, checkpoint, predictor, sources, fps, camera_height)
     plan_for = _Plans(predictor, cam, camera_path, Path(mask) if mask is not None else None)
     for source in sources:  # refuse unsuitable inputs (and masks) before writing anything
         for size in source.sizes:
             plan_for.mask(source, size)
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     options = {"batch_size": batch_size, "png": png, "full_resolution": full_resolution, "fps": fps}
     options["mask"] = file_id(Path(mask)) if mask is not None else None
-    options["camera_height"] = camera_height
-    options["odometry"] = file_id(Path(odometry) / "odometry.json") if odometry is not None else None
+    options |= {"camera_height": camera_height, "odometry": given.id if given is not None else None}
     resume = _same_settings(out / MANIFEST, _settings(checkpoint, sources, cam, options))
     total = expected_frames(sources, fps)
     bar = progress_bar(total=total, desc="predict", unit="frame", enabled=progress, leave=True)
@@ -155,10 +141,7 @@ def predict(
     try:
         with torch.inference_mode():
             for source in sources:
-                scale = ride_scale(source, plan_for, predictor, fps, camera_height)
-                if given is not None:
-                    scale = given.scale(scale)
-                _write_scale(out, source, scale)
+                scale = _scale_of(source, plan_for, predictor, fps, camera_height, out, given)
                 outputs = _Outputs(png, full_resolution, resume, scale)
                 _run_source(source, plan_for, predictor, out, batch_size, outputs, fps, bar, summary)
     finally:
@@ -311,10 +294,43 @@ def _preview_batch(
         writer.write(side_by_side([shown[i], colorize_depth(depth, *(limits or (None, None)))]))
 
 
-def _write_scale(out: Path, source: InputSource, scale: RideScale) -> None:
-    """``OUT/NAME/scale.json``, and the scale in the log."""
+def _odometry(
+    odometry: Any,
+    checkpoint: Any,
+    predictor: Predictor,
+    sources: list[InputSource],
+    fps: float | None,
+    camera_height: float | None,
+) -> OdometryFactors | None:
+    """The per-frame factors of the odometry output given for the one input (``None``: none given),
+    checked before anything is written."""
+    if odometry is None:
+        return None
+    if camera_height is not None or len(sources) != 1:
+        raise InputError(
+            "odometry: give one input, without camera_height (the odometry's output has the ride's scale)"
+        )
+    ident = checkpoint_id(predictor.models.path if isinstance(checkpoint, Predictor) else checkpoint)
+    return odometry_factors(Path(odometry), sources[0], ident, fps)
+
+
+def _scale_of(
+    source: InputSource,
+    plans: _Plans,
+    predictor: Predictor,
+    fps: float | None,
+    height: float | None,
+    out: Path,
+    given: OdometryFactors | None,
+) -> RideScale:
+    """The input's scale (:func:`ride_scale`, frame by frame with the odometry's factors ``given``),
+    said in the log (on the terminal from the command line) and in ``OUT/NAME/scale.json``."""
+    scale = ride_scale(source, plans, predictor, fps, height)
+    if given is not None:
+        scale = given.scale(scale)
     _write_if_changed(out / source.name / "scale.json", json.dumps(scale.to_dict(), indent=1) + "\n")
     log.info("%s: %s", source.name, scale.note)
+    return scale
 
 
 def _write_if_changed(path: Path, text: str) -> None:

@@ -31,6 +31,7 @@ from ..geometry import Camera, CylindricalCamera
 from ..geometry.ground import ground_height, metric_scale
 from ..model import Predictor
 from ..model.plan import Plan, network_images
+from ..runtime import file_id
 
 __all__ = ["SAMPLES", "OdometryFactors", "RideScale", "network_depth", "odometry_factors", "ride_scale"]
 
@@ -149,6 +150,11 @@ class OdometryFactors:
     unit: str
     factors: tuple[float, ...]
     spread: float
+
+    @property
+    def id(self) -> str:
+        """The file and its content's digest (what a continued run's outputs were made with)."""
+        return file_id(self.path)
 
     def scale(self, scale: RideScale) -> RideScale:
         """``scale`` (the input's sample, for its colour range) with these factors, frame by frame."""

@@ -3,11 +3,12 @@ objective applies them (the mask, the poses that warp)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from cylsfm.geometry import CylindricalCamera, pose_vec_to_mat
-from cylsfm.losses import LossConfig, sfm_pose_term, sparse_depth_term
+from cylsfm.losses import DENSE_FLOOR, LossConfig, dense_depth_term, sfm_pose_term, sparse_depth_term
 from cylsfm.train.objective import Batch, Objective
 
 
@@ -52,6 +53,27 @@ def test_sparse_term_weighs_by_uncertainty_and_an_outlier_pulls_little():
     at = (0, 0, int(first[0]), int(first[1]))
     # Cauchy: the far outlier's pull on its depth's logarithm is smaller than a 5% error's
     assert abs(float(disp.grad[at] * (1.0 / far)[at])) < abs(float(disp2.grad[at] * (1.0 / near)[at]))
+
+
+def test_dense_term_is_zero_at_the_fused_depth_grows_with_an_error_and_trusts_no_spread_below_its_floor():
+    gen = torch.Generator().manual_seed(3)
+    depth = 2.0 + 10.0 * torch.rand(2, 1, 8, 32, generator=gen)
+    dense = torch.cat((depth, torch.full_like(depth, 0.01)), 1)
+    dense[:, :, :2] = 0  # rows without a fused depth
+    assert float(dense_depth_term(1.0 / depth, dense)) < 1e-10
+    losses = [float(dense_depth_term(1.0 / (depth * (1 + e)), dense)) for e in (0.01, 0.05, 0.2)]
+    assert 0 < losses[0] < losses[1] < losses[2]
+    off = depth.clone()
+    off[:, :, :2] *= 3.0  # wrong where nothing was fused: no matter
+    assert float(dense_depth_term(1.0 / off, dense)) < 1e-10
+    # a spread below the floor counts as the floor: sigma = DENSE_FLOOR exactly
+    r = 0.1
+    want = float(torch.log1p(torch.tensor(r / DENSE_FLOOR) ** 2))
+    assert float(dense_depth_term(1.0 / (depth * np.exp(r)), dense)) == pytest.approx(want, rel=1e-4)
+    wide = dense.clone()
+    wide[:, 1] = 0.5  # the frames disagree: the target pulls less
+    assert float(dense_depth_term(1.0 / (depth * 1.2), wide)) < 0.2 * losses[2]
+    assert float(dense_depth_term(1.0 / depth, torch.zeros_like(dense))) == 0.0
 
 
 def test_pose_term_is_zero_for_the_adjusted_poses_and_grows_with_an_error():
@@ -106,6 +128,24 @@ def test_objective_adds_the_terms_and_ignores_points_under_the_mask():
     mask[..., :32] = 0  # an occluder over the left half: its points are no target
     _, terms, _ = Objective(cfg, wrap=True)(_batch(sparse, mask), _outputs(wrong, vec))
     assert float(terms["sfm_depth"]) < 1e-8
+
+
+def test_objective_adds_the_dense_term_from_the_targets_last_two_channels():
+    depth, sparse = _points(b=2, h=16, w=64)
+    dense = torch.cat((depth, torch.full_like(depth, 0.05)), 1)
+    targets = torch.cat((sparse, dense), 1)  # [B,4,H,W] as the dataset gives them
+    vec = torch.tensor([[0.0, 0.0, 0.3, 0.0, 0.0, 0.0], [0.0, 0.0, -0.3, 0.0, 0.0, 0.0]]).expand(2, 2, 6)
+    cfg = LossConfig(sfm_depth_weight=0.5, sfm_dense_weight=2.0)
+    _, terms, _ = Objective(cfg, wrap=True)(_batch(targets), _outputs(depth, vec))
+    assert float(terms["sfm_dense"]) < 1e-8 and float(terms["sfm_depth"]) < 1e-8
+    wrong = depth * 1.1
+    _, terms, _ = Objective(cfg, wrap=True)(_batch(targets), _outputs(wrong, vec))
+    want = 2.0 * float(dense_depth_term(1.0 / wrong, dense))
+    assert float(terms["sfm_dense"]) == pytest.approx(want, rel=1e-5) and want > 0.1
+    _, terms, _ = Objective(LossConfig(sfm_depth_weight=0.5), wrap=True)(
+        _batch(targets), _outputs(wrong, vec)
+    )
+    assert "sfm_dense" not in terms
 
 
 def test_synthesis_warps_with_the_adjusted_poses_where_the_ride_has_them(monkeypatch):

@@ -33,6 +33,7 @@ from .geometry import Camera, column_difference, inverse_warp, pad_for_window, r
 __all__ = [
     "LossConfig",
     "LossOutput",
+    "dense_depth_term",
     "explainability_loss",
     "gradient_x",
     "gradient_y",
@@ -180,6 +181,8 @@ class LossConfig:
         full_resolution: upsample every scale's disparity to the input size for the photometric term.
         sfm_depth_weight: weight of :func:`sparse_depth_term` (the ride's adjusted points; 0: none).
         sfm_pose_weight: weight of :func:`sfm_pose_term` (the pose network taught the adjusted poses).
+        sfm_dense_weight: weight of :func:`dense_depth_term` (each frame's depth fused with its
+            neighbours' by the adjusted poses; 0: none).
         sfm_synthesis: warp the sources with the ride's adjusted poses where it has them, not the predicted.
     """
 
@@ -195,6 +198,7 @@ class LossConfig:
     full_resolution: bool = False
     sfm_depth_weight: float = 0.0
     sfm_pose_weight: float = 0.0
+    sfm_dense_weight: float = 0.0
     sfm_synthesis: bool = False
 
     def __post_init__(self) -> None:
@@ -204,6 +208,7 @@ class LossConfig:
             "explain_weight",
             "sfm_depth_weight",
             "sfm_pose_weight",
+            "sfm_dense_weight",
         ):
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -451,12 +456,38 @@ def sparse_depth_term(disparity: Tensor, sparse: Tensor) -> Tensor:
             (:meth:`cylsfm.data.geometry.RideGeometry.depth_map`).
     """
     check_shape(sparse, f"{disparity.shape[0]},2,{disparity.shape[2]},{disparity.shape[3]}", "sparse")
-    has = sparse[:, :1] > 0
+    return _cauchy_log_depth(disparity, sparse, 1e-3)
+
+
+#: The smallest spread a fused depth is trusted to (:func:`dense_depth_term`).
+DENSE_FLOOR = 0.05
+
+
+def dense_depth_term(disparity: Tensor, dense: Tensor) -> Tensor:
+    """How far the depth is from the ride's fused depth (each frame's depth fused with its neighbours' by
+    the adjusted poses, :func:`cylsfm.geometry.fusion.fuse_depth`): per pixel, Cauchy's
+    ``log(1 + (r / sigma)^2)`` of ``r = log(depth / fused depth)``, ``sigma`` the frames' spread there,
+    never below :data:`DENSE_FLOOR` (where the frames disagree the target pulls little); averaged over the
+    pixels that have a fused depth (0 without any).
+
+    Args:
+        disparity: ``[B,1,H,W]`` the finest disparity (1 / depth).
+        dense: ``[B,2,H,W]``: the fused depth (0: none) and its spread in log depth
+            (:meth:`cylsfm.data.geometry.RideGeometry.fused_map`).
+    """
+    check_shape(dense, f"{disparity.shape[0]},2,{disparity.shape[2]},{disparity.shape[3]}", "dense")
+    return _cauchy_log_depth(disparity, dense, DENSE_FLOOR)
+
+
+def _cauchy_log_depth(disparity: Tensor, target: Tensor, floor: float) -> Tensor:
+    """The mean Cauchy loss of the log depth against ``target`` ``[B,2,H,W]`` (depth, sigma) where its
+    depth is positive, sigma no smaller than ``floor``."""
+    has = target[:, :1] > 0
     if not bool(has.any()):
         return disparity.new_zeros(())
     log_depth = -torch.log(disparity.clamp(min=1e-6))
-    r = (log_depth - torch.log(sparse[:, :1].clamp(min=1e-6)))[has]
-    sigma = sparse[:, 1:][has].clamp(min=1e-3)
+    r = (log_depth - torch.log(target[:, :1].clamp(min=1e-6)))[has]
+    sigma = target[:, 1:][has].clamp(min=floor)
     return torch.log1p((r / sigma) ** 2).mean()
 
 

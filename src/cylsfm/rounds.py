@@ -11,8 +11,10 @@ networks' and share one scale along the ride. So a run trains in stages over one
       as they are, into ``RUN/geometry/round_K/<ride>/`` (``trajectory.txt``, ``points.npz``);
    b. **training** on from the checkpoint with those rides as targets (:mod:`cylsfm.data.geometry`):
       the depth at the adjusted points (``loss.sfm_depth_weight``), the pose network towards the adjusted
-      poses (``loss.sfm_pose_weight``), and, with ``sfm.synthesis``, the sources warped by the adjusted
-      poses; every photometric term is kept.
+      poses (``loss.sfm_pose_weight``), with ``sfm.dense_weight`` every frame's depth towards its fusion
+      with its neighbours' by the adjusted poses (``loss.sfm_dense_weight``; the odometry then writes
+      each frame's depth in the ride's one scale), and, with ``sfm.synthesis``, the sources warped by the
+      adjusted poses; every photometric term is kept.
 
 The budget (``minutes``, or ``max_steps``) covers everything, the odometry included: the time left after
 each geometry pass is shared among the training stages left, less the passes still to come (each taken
@@ -184,6 +186,7 @@ def _training_config(cfg: TrainConfig, run: Path, state: dict, plan: list[str], 
         cfg.loss,
         sfm_depth_weight=sfm.depth_weight,
         sfm_pose_weight=sfm.pose_weight,
+        sfm_dense_weight=sfm.dense_weight,
         sfm_synthesis=sfm.synthesis,
     )
     return replace(out, data=data, loss=loss)
@@ -196,7 +199,12 @@ def _geometry(cfg: TrainConfig, run: Path, round_: int, progress: bool) -> dict[
     index = build_index(d.root, d.split, d.split_name, d.seq_length, d.stride)
     out = geometry_dir(run, round_)
     settings = OdometrySettings(
-        refine=cfg.sfm.refine, bundle=True, progress=progress, mask=d.mask or None, device=cfg.device
+        refine=cfg.sfm.refine,
+        bundle=True,
+        save_depth_maps=cfg.sfm.dense_weight > 0,  # in the ride's one scale: the fused targets' source
+        progress=progress,
+        mask=d.mask or None,
+        device=cfg.device,
     )
     done: dict[str, str] = {}
     for s in index.used:

@@ -173,7 +173,7 @@ def test_samples_carry_the_geometry_mirrored_with_the_frames(tiny, tmp_path):
         data = _dataset(tiny, geo_root, mirror_prob=mirror, ground_truth=True)
         a = data[0]
         assert (
-            a["sequence"] == seq.name and a["sfm_depth"].shape == (2, 8, 32) and (a["sfm_depth"][0] > 0).any()
+            a["sequence"] == seq.name and a["sfm_depth"].shape == (4, 8, 32) and (a["sfm_depth"][0] > 0).any()
         )
         np.testing.assert_allclose(a["sfm_step"].numpy(), [step, step], rtol=1e-5)
         torch.testing.assert_close(a["sfm_pose"], a["pose_gt"], atol=1e-5, rtol=1e-5)
@@ -183,3 +183,48 @@ def test_samples_carry_the_geometry_mirrored_with_the_frames(tiny, tmp_path):
         plain = a
         other = next(s for s in data if s["sequence"] != seq.name)
         assert other["sfm_step"].tolist() == [0.0, 0.0] and not other["sfm_depth"].any()
+
+
+def test_depth_files_of_the_ride_give_each_frame_its_fused_depth(tmp_path):
+    """With the odometry's depth files (here each frame's exact depth of a wall 6 units around the ride's
+    start), every frame has its fused depth, at the files' size or the samples'; without all of them, or of
+    a crop's aspect ratio, none; a damaged file is named."""
+    from cylsfm.data.io import save_depth
+
+    c2w, xyz, tracks = _ride()
+    folder = tmp_path / "ride"
+    _write(folder, c2w, xyz, tracks)
+    small = CAM.resized(32, 8)
+    rays = small.rays(small.pixel_grid(1, dtype=torch.float64))[0].numpy()
+    stems = [f"{j:06d}" for j in range(len(c2w))]
+    (folder / "depth").mkdir()
+    truth = []
+    for j, stem in enumerate(stems):
+        direction = np.einsum("ij,jhw->ihw", c2w[j, :3, :3], rays)[[0, 2]]  # horizontal, in the world
+        centre = c2w[j, [0, 2], 3]
+        b = np.einsum("i,ihw->hw", centre, direction)
+        d = -b + np.sqrt(b**2 - (centre @ centre - 36.0))
+        truth.append(d.astype(np.float32))
+        save_depth(folder / "depth" / f"{stem}.npy", truth[-1])
+    geo = load_geometry(folder, len(c2w), CAM, stems)
+    assert geo.fused is not None and geo.fused.shape == (len(c2w), 2, 8, 32)
+    target = geo.targets(2, (32, 8))
+    assert target.shape == (4, 8, 32)
+    np.testing.assert_array_equal(target[:2], geo.depth_map(2, (32, 8)))
+    known = target[2] > 0
+    assert known[2:-2].all()
+    np.testing.assert_allclose(target[2][known], truth[2][known], rtol=0.02)
+    assert geo.targets(2, (64, 16)).shape == (4, 16, 64)  # resized to the samples' size
+    assert load_geometry(folder, len(c2w), CAM).fused is None  # without the frames' names
+    (folder / "depth" / f"{stems[-1]}.npy").unlink()
+    assert load_geometry(folder, len(c2w), CAM, stems).fused is None  # a frame without its file
+    assert not load_geometry(folder, len(c2w), CAM, stems).targets(2, (32, 8))[2:].any()
+    save_depth(folder / "depth" / f"{stems[-1]}.npy", np.ones((8, 16), np.float32))
+    with pytest.raises(DatasetError, match=f"{stems[-1]}.npy"):
+        load_geometry(folder, len(c2w), CAM, stems)
+    (folder / "depth" / f"{stems[-1]}.npy").write_bytes(b"not a depth map")
+    with pytest.raises(DatasetError, match=f"{stems[-1]}.npy"):
+        load_geometry(folder, len(c2w), CAM, stems)
+    for stem in stems:  # a crop's maps (a model of crops): no fused depth
+        save_depth(folder / "depth" / f"{stem}.npy", np.ones((8, 16), np.float32))
+    assert load_geometry(folder, len(c2w), CAM, stems).fused is None

@@ -101,8 +101,11 @@ class SequenceDataset(Dataset):
       (metres); present when every used sequence has ``poses.txt``;
     - ``"mask"``: ``float32 [1,H,W]`` in ``{0, 1}``, 1 = pixel to use; present when any used sequence has
       ``mask.png`` or ``options.mask`` is given (sequences without get all ones);
-    - ``"sfm_depth"``: ``float32 [2,H,W]``, with ``options.geometry``: the ride's adjusted points seen by the
+    - ``"sfm_depth"``: ``float32 [4,H,W]``, with ``options.geometry``: the ride's adjusted points seen by the
       target, channel 0 their depth in the ride's unit (0 = none), channel 1 its relative standard deviation;
+      channel 2 the target's depth fused with its neighbours' by the adjusted poses (0 = none: the odometry
+      wrote no depth maps), channel 3 its spread in log depth
+      (:meth:`~cylsfm.data.geometry.RideGeometry.targets`);
       ``"sfm_pose"``: ``float32 [S,4,4]`` the adjusted ``T_tgt_to_src`` per source, in the ride's unit;
       ``"sfm_step"``: ``float32 [S]``, the ride's median step length in its unit where it has its geometry
       (else 0, the pose the identity);
@@ -188,7 +191,8 @@ class SequenceDataset(Dataset):
             ride = root / seq.name
             if not ride.resolve().is_relative_to(root.resolve()):
                 raise DatasetError(f"{root}: the ride {seq.name!r} names a folder outside it")
-            out[s] = load_geometry(ride, len(seq.images), seq.camera) if ride.is_dir() else None
+            stems = [p.stem for p in seq.images]
+            out[s] = load_geometry(ride, len(seq.images), seq.camera, stems) if ride.is_dir() else None
         return out
 
     def _decode(self, s: int, f: int) -> np.ndarray:
@@ -265,13 +269,13 @@ class SequenceDataset(Dataset):
             if ride is None:
                 w, h = camera.size
                 sfm = (
-                    np.zeros((2, h, w), np.float32),
+                    np.zeros((4, h, w), np.float32),
                     np.tile(np.eye(4), (len(src), 1, 1)),
                     np.zeros(len(src)),
                 )
             else:
                 sfm = (
-                    ride.depth_map(tgt, camera.size),
+                    ride.targets(tgt, camera.size),
                     ride.relative(tgt, src),
                     np.full(len(src), ride.step),
                 )

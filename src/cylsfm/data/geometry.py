@@ -8,6 +8,11 @@ triangulated from rays ``alpha`` apart is known to about ``sigma_b / sin(alpha)`
 ``sigma_b`` is a keypoint's angular noise (:data:`KEYPOINT_PIXELS` pixels), never better than
 :data:`DEPTH_FLOOR`.
 
+Where the odometry also wrote each frame's depth in the ride's one scale (``depth/FRAME.npy``, its
+``save_depth_maps``), every frame also gets a dense target: its depth fused with that of the
+:data:`FUSE_NEIGHBOURS` frames on either side by the adjusted poses
+(:func:`~cylsfm.geometry.fusion.fuse_depth`), with the spread of the frames' depths at each pixel.
+
 A folder of such geometry for a dataset holds one odometry output per ride, named as the ride
 (``GEOMETRY/seq_003/trajectory.txt`` ...); :class:`~cylsfm.data.SequenceDataset` reads it with
 ``SampleOptions(geometry=GEOMETRY)``.
@@ -15,7 +20,7 @@ A folder of such geometry for a dataset holds one odometry output per ride, name
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,10 +28,19 @@ import torch
 
 from ..errors import CylsfmError
 from ..geometry import Camera, invert
-from .io import DatasetError, read_tum
+from ..geometry.fusion import fuse_depth
+from .io import DatasetError, load_depth, read_tum, resize_nearest
 from .points import SparsePoints, read_points
 
-__all__ = ["DEPTH_FLOOR", "KEYPOINT_PIXELS", "TOLERANCE", "RideGeometry", "load_geometry", "ride_geometry"]
+__all__ = [
+    "DEPTH_FLOOR",
+    "FUSE_NEIGHBOURS",
+    "KEYPOINT_PIXELS",
+    "TOLERANCE",
+    "RideGeometry",
+    "load_geometry",
+    "ride_geometry",
+]
 
 #: A keypoint's noise, in pixels of the ride's own frames (the bundle adjustment's).
 KEYPOINT_PIXELS = 0.3
@@ -36,6 +50,9 @@ TOLERANCE = 2.0
 
 #: The smallest relative standard deviation a point's depth is given (the network is not asked for more).
 DEPTH_FLOOR = 0.01
+
+#: A frame's depth is fused with this many frames on either side (and needs 3 that see a pixel).
+FUSE_NEIGHBOURS = 3
 
 
 @dataclass(frozen=True)
@@ -54,6 +71,8 @@ class RideGeometry:
         size: ``(W, H)`` of the ride's own frames; ``wraps``: whether their columns wrap (a full panorama).
         unit: the unit's name (``network units``, or ``m`` with a camera height).
         step: the ride's median step length between consecutive frames, in its unit (positive).
+        fused: ``float16 [M,2,h,w]`` each frame's fused depth (0: none) and its spread in log depth, at the
+            size of the odometry's depth maps; ``None`` where the odometry wrote none.
     """
 
     c2w: np.ndarray
@@ -66,6 +85,7 @@ class RideGeometry:
     wraps: bool
     unit: str
     step: float
+    fused: np.ndarray | None = None
 
     def depth_map(self, frame: int, size: tuple[int, int]) -> np.ndarray:
         """``float32 [2,H,W]`` of frame ``frame`` at ``size`` ``(W, H)``: channel 0 the depth of its points
@@ -93,14 +113,32 @@ class RideGeometry:
         out[1].reshape(-1)[pixel[first]] = sigma[first]
         return out
 
+    def fused_map(self, frame: int, size: tuple[int, int]) -> np.ndarray:
+        """``float32 [2,H,W]`` of frame ``frame`` at ``size`` ``(W, H)`` (nearest pixel): its fused depth
+        (0: none) and spread; all 0 without fused depth."""
+        w, h = size
+        if self.fused is None:
+            return np.zeros((2, h, w), np.float32)
+        maps = self.fused[frame].astype(np.float32)
+        if maps.shape[1:] != (h, w):
+            maps = np.stack([resize_nearest(m, size) for m in maps])
+        return maps
+
+    def targets(self, frame: int, size: tuple[int, int]) -> np.ndarray:
+        """``float32 [4,H,W]``: :meth:`depth_map` (the points) and :meth:`fused_map` of frame ``frame``."""
+        return np.concatenate((self.depth_map(frame, size), self.fused_map(frame, size)))
+
     def relative(self, target: int, sources: list[int]) -> np.ndarray:
         """``float64 [S,4,4]`` ``T_target_to_source`` for each source frame (``p_s = T p_t``)."""
         return invert(self.c2w[np.asarray(sources, dtype=np.int64)]) @ self.c2w[target]
 
 
-def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeometry:
+def load_geometry(
+    folder: str | Path, frames: int, camera: Camera, stems: list[str] | None = None
+) -> RideGeometry:
     """The adjusted geometry that :func:`cylsfm.odometry` wrote to ``folder`` for a ride of ``frames``
-    frames seen by ``camera`` (at the frames' own size).
+    frames seen by ``camera`` (at the frames' own size), and, given the frames' names ``stems`` and the
+    odometry's depth files (``folder/depth/STEM.npy``, every frame's), each frame's fused depth.
 
     Only the observations that the geometry explains are kept: the point in front of the frame (its
     camera's depth positive) and projected within :data:`TOLERANCE` pixels of the keypoint (a point
@@ -124,7 +162,31 @@ def load_geometry(folder: str | Path, frames: int, camera: Camera) -> RideGeomet
     geometry = ride_geometry(c2w, pts, camera)
     if not geometry.step > 0:
         raise DatasetError(f"{path}: the ride does not move (median step {geometry.step})")
+    if stems is not None and (folder / "depth").is_dir():
+        geometry = replace(geometry, fused=_fused(folder / "depth", stems, c2w, camera))
     return geometry
+
+
+def _fused(folder: Path, stems: list[str], c2w: np.ndarray, camera: Camera) -> np.ndarray | None:
+    """``float16 [M,2,h,w]`` the frames' depth files in ``folder`` fused by the poses ``c2w``; ``None``
+    where a frame has no file or the maps are not of the frames' aspect ratio (a model of crops).
+
+    Raises:
+        DatasetError: a depth file that cannot be read, or maps of different sizes (naming the file).
+    """
+    paths = [folder / f"{stem}.npy" for stem in stems]
+    if len(paths) != len(c2w) or not all(p.is_file() for p in paths):
+        return None
+    maps = [load_depth(p) for p in paths]  # DatasetError naming the file
+    h, w = maps[0].shape
+    for p, m in zip(paths, maps, strict=True):
+        if m.shape != (h, w):
+            raise DatasetError(f"{p}: a {m.shape[1]}x{m.shape[0]} depth map among {w}x{h} ones")
+    if abs(w * camera.height - h * camera.width) > 0.01 * h * camera.width:
+        return None
+    depths = torch.from_numpy(np.stack(maps))[:, None]
+    fused, spread = fuse_depth(depths, torch.from_numpy(c2w), camera.resized(w, h), FUSE_NEIGHBOURS)
+    return torch.cat((fused, spread), 1).numpy().astype(np.float16)
 
 
 def ride_geometry(c2w: np.ndarray, pts: SparsePoints, camera: Camera) -> RideGeometry:

@@ -125,7 +125,7 @@ def build_sample(
         depth: target depth ``float32 [H,W]`` (metres, 0 = unknown), or ``None``.
         mask: ``float32 [H,W]`` in ``{0, 1}``, or ``None``.
         pose_gt: ``float64 [L-1,4,4]`` ``T_tgt_to_src`` per source, or ``None``.
-        sfm: the ride's own geometry, or ``None``: ``(depth [2,H,W], T_tgt_to_src [L-1,4,4], step [L-1])``
+        sfm: the ride's own geometry, or ``None``: ``(depth [4,H,W], T_tgt_to_src [L-1,4,4], step [L-1])``
             (:meth:`~cylsfm.data.geometry.RideGeometry.depth_map`, ``relative``); augmented with the rest.
 
     Returns:

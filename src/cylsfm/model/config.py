@@ -63,7 +63,7 @@ class DataConfig:
     workers: int | None = None  # loader processes; None: 0 on the CPU with cached frames, else 2
     cache: bool | str = "auto"  # frames decoded once and kept in memory (auto: when they fit easily)
     # a folder of the rides' own adjusted geometry (one cylsfm odometry output per ride, named as the ride):
-    # the targets of loss.sfm_depth_weight, loss.sfm_pose_weight and loss.sfm_synthesis (no labels)
+    # the targets of loss.sfm_depth_weight, sfm_pose_weight, sfm_dense_weight and sfm_synthesis (no labels)
     geometry: str | None = None
 
 
@@ -125,6 +125,8 @@ class SfmConfig:
         first_share: the share of the budget (minutes or steps) trained before the first pass.
         depth_weight: ``loss.sfm_depth_weight`` once a ride has its geometry.
         pose_weight: ``loss.sfm_pose_weight``.
+        dense_weight: ``loss.sfm_dense_weight``: each frame's depth taught its fusion with its
+            neighbours' by the adjusted poses (the odometry then writes every frame's depth).
         synthesis: ``loss.sfm_synthesis``: warp with the adjusted poses.
         refine: the odometry's direct alignment before the adjustment (slower, a better start).
     """
@@ -133,14 +135,16 @@ class SfmConfig:
     first_share: float = 0.5
     depth_weight: float = 0.1
     pose_weight: float = 0.1
+    dense_weight: float = 0.0
     synthesis: bool = False
     refine: bool = True
 
     def __post_init__(self) -> None:
-        if self.rounds < 0 or not 0 < self.first_share < 1 or self.depth_weight < 0 or self.pose_weight < 0:
+        weights = (self.depth_weight, self.pose_weight, self.dense_weight)
+        if self.rounds < 0 or not 0 < self.first_share < 1 or min(weights) < 0:
             raise ConfigError(
-                "sfm.rounds must be >= 0, sfm.first_share in (0, 1), sfm.depth_weight and sfm.pose_weight >= 0; "
-                f"got {self.rounds}, {self.first_share}, {self.depth_weight}, {self.pose_weight}"
+                "sfm.rounds must be >= 0, sfm.first_share in (0, 1), sfm.depth_weight, sfm.pose_weight and "
+                f"sfm.dense_weight >= 0; got {self.rounds}, {self.first_share}, {', '.join(map(str, weights))}"
             )
 
 
@@ -447,6 +451,7 @@ RESUMABLE_KEYS = (
     "data.geometry",  # a round of training from the rides' own geometry (cylsfm.rounds) sets these
     "loss.sfm_depth_weight",
     "loss.sfm_pose_weight",
+    "loss.sfm_dense_weight",
     "loss.sfm_synthesis",
     "minutes",
     "device",

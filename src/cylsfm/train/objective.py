@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from ..data.dataset import camera_of
 from ..data.fill import fill_masked
 from ..geometry import Camera, pose_vec_to_mat
-from ..losses import LossConfig, sfm_pose_term, sparse_depth_term, view_synthesis_loss
+from ..losses import LossConfig, dense_depth_term, sfm_pose_term, sparse_depth_term, view_synthesis_loss
 from ..nn import DispNet, PoseModel
 from .scaffold import SlotPriorScaffold
 
@@ -32,7 +32,7 @@ class Batch:
         target: ``[B,3,H,W]`` in ``[0, 1]``; ``sources``: ``[B,S,3,H,W]``.
         camera: the images' camera (batched intrinsics).
         mask: ``[B,1,H,W]`` or ``[1,1,H,W]`` weights of the pixels to use, or ``None`` (all).
-        sfm: the rides' own adjusted geometry, or ``None``: ``(depth [B,2,H,W], T_tgt_to_src [B,S,4,4],
+        sfm: the rides' own adjusted geometry, or ``None``: ``(depth [B,4,H,W], T_tgt_to_src [B,S,4,4],
             step [B,S])`` (:class:`~cylsfm.data.SequenceDataset`'s ``sfm_*`` keys).
     """
 
@@ -131,7 +131,9 @@ class Objective:
             if cfg.sfm_synthesis:
                 warp_poses = torch.where(step[..., None, None] > 0, sfm_pose, poses)
             if cfg.sfm_depth_weight > 0:
-                own["sfm_depth"] = cfg.sfm_depth_weight * sparse_depth_term(disps[0], sfm_depth)
+                own["sfm_depth"] = cfg.sfm_depth_weight * sparse_depth_term(disps[0], sfm_depth[:, :2])
+            if cfg.sfm_dense_weight > 0:
+                own["sfm_dense"] = cfg.sfm_dense_weight * dense_depth_term(disps[0], sfm_depth[:, 2:])
             if cfg.sfm_pose_weight > 0:
                 own["sfm_pose"] = cfg.sfm_pose_weight * sfm_pose_term(poses, sfm_pose, step)
         out = view_synthesis_loss(

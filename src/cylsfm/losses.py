@@ -445,7 +445,7 @@ def view_synthesis_loss(
 
 
 # ----------------------------------------------------------------------------- the ride's own geometry
-def sparse_depth_term(disparity: Tensor, sparse: Tensor) -> Tensor:
+def sparse_depth_term(disparity: Tensor, sparse: Tensor, floor: float = 1e-3) -> Tensor:
     """How far the depth is from the ride's adjusted points: per point, Cauchy's ``log(1 + (r / sigma)^2)``
     of ``r = log(depth / point's depth)``, so that a point far off (a wrong match, a moving object) pulls
     little; averaged over the points (0 without any).
@@ -454,9 +454,16 @@ def sparse_depth_term(disparity: Tensor, sparse: Tensor) -> Tensor:
         disparity: ``[B,1,H,W]`` the finest disparity (1 / depth).
         sparse: ``[B,2,H,W]``: the points' depth (0: no point) and relative standard deviation ``sigma``
             (:meth:`cylsfm.data.geometry.RideGeometry.depth_map`).
+        floor: the smallest ``sigma`` used.
     """
-    check_shape(sparse, f"{disparity.shape[0]},2,{disparity.shape[2]},{disparity.shape[3]}", "sparse")
-    return _cauchy_log_depth(disparity, sparse, 1e-3)
+    check_shape(sparse, f"{disparity.shape[0]},2,{disparity.shape[2]},{disparity.shape[3]}", "targets")
+    has = sparse[:, :1] > 0
+    if not bool(has.any()):
+        return disparity.new_zeros(())
+    log_depth = -torch.log(disparity.clamp(min=1e-6))
+    r = (log_depth - torch.log(sparse[:, :1].clamp(min=1e-6)))[has]
+    sigma = sparse[:, 1:][has].clamp(min=floor)
+    return torch.log1p((r / sigma) ** 2).mean()
 
 
 #: The smallest spread a fused depth is trusted to (:func:`dense_depth_term`).
@@ -464,31 +471,11 @@ DENSE_FLOOR = 0.05
 
 
 def dense_depth_term(disparity: Tensor, dense: Tensor) -> Tensor:
-    """How far the depth is from the ride's fused depth (each frame's depth fused with its neighbours' by
-    the adjusted poses, :func:`cylsfm.geometry.fusion.fuse_depth`): per pixel, Cauchy's
-    ``log(1 + (r / sigma)^2)`` of ``r = log(depth / fused depth)``, ``sigma`` the frames' spread there,
-    never below :data:`DENSE_FLOOR` (where the frames disagree the target pulls little); averaged over the
-    pixels that have a fused depth (0 without any).
-
-    Args:
-        disparity: ``[B,1,H,W]`` the finest disparity (1 / depth).
-        dense: ``[B,2,H,W]``: the fused depth (0: none) and its spread in log depth
-            (:meth:`cylsfm.data.geometry.RideGeometry.fused_map`).
-    """
-    check_shape(dense, f"{disparity.shape[0]},2,{disparity.shape[2]},{disparity.shape[3]}", "dense")
-    return _cauchy_log_depth(disparity, dense, DENSE_FLOOR)
-
-
-def _cauchy_log_depth(disparity: Tensor, target: Tensor, floor: float) -> Tensor:
-    """The mean Cauchy loss of the log depth against ``target`` ``[B,2,H,W]`` (depth, sigma) where its
-    depth is positive, sigma no smaller than ``floor``."""
-    has = target[:, :1] > 0
-    if not bool(has.any()):
-        return disparity.new_zeros(())
-    log_depth = -torch.log(disparity.clamp(min=1e-6))
-    r = (log_depth - torch.log(target[:, :1].clamp(min=1e-6)))[has]
-    sigma = target[:, 1:][has].clamp(min=floor)
-    return torch.log1p((r / sigma) ** 2).mean()
+    """:func:`sparse_depth_term` against the ride's fused depth ``dense`` ``[B,2,H,W]`` (each frame's depth
+    fused with its neighbours' by the adjusted poses, 0 where none, and the frames' spread in log depth as
+    ``sigma``, never below :data:`DENSE_FLOOR`: :meth:`cylsfm.data.geometry.RideGeometry.fused_map`),
+    averaged over the pixels that have one; ``disparity`` ``[B,1,H,W]``."""
+    return sparse_depth_term(disparity, dense, DENSE_FLOOR)
 
 
 def sfm_pose_term(poses: Tensor, sfm_poses: Tensor, step: Tensor) -> Tensor:

@@ -40,39 +40,22 @@ def test_a_round_trains_adjusts_every_ride_and_trains_on_with_its_geometry(tiny_
         cam = CylindricalCamera.from_json(tiny_data / ride / "camera.json")
         geo = load_geometry(geometry_dir(run, 1) / ride, 10, cam)
         assert geo.c2w.shape == (10, 4, 4) and len(geo.depth) > 0
+        # the odometry wrote every frame's depth (the fused depth is on by default): each frame has its own
+        stems = sorted(p.stem for p in (tiny_data / ride / "images").iterdir())
+        assert sorted(p.stem for p in (geometry_dir(run, 1) / ride / "depth").glob("*.npy")) == stems
+        fused = load_geometry(geometry_dir(run, 1) / ride, 10, cam, stems).fused
+        assert fused is not None and (fused[:, 0] > 0).mean() > 0.5
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert all("sfm_depth" not in r for r in rows if r["step"] <= 2)
     later = [r for r in rows if r["step"] > 2]
-    assert later and all(r["sfm_depth"] > 0 and r["sfm_pose"] > 0 for r in later)
-    parts = sum(
-        later[-1].get(k, 0.0)
-        for k in ("photometric", "smooth", "explain", "scaffold", "sfm_depth", "sfm_pose")
-    )
-    assert later[-1]["total"] == pytest.approx(parts, rel=1e-6)
-    saved = json.loads((run / STATE_FILE).read_text())
-    assert len(saved["stages"]) == 3 and saved["seconds"] > 0
-
-
-def test_a_round_with_the_dense_term_fuses_each_rides_depth_and_trains_on_it(tiny_data, tmp_path):
-    run = tmp_path / "run"
-    train_rounds(_cfg(tiny_data, **{"sfm.dense_weight": "0.5"}), run, progress=False)
-    rides = sorted(p.name for p in tiny_data.iterdir() if p.name.startswith("seq_"))
-    for ride in rides:  # the odometry wrote every frame's depth: each frame has its fused depth
-        folder = geometry_dir(run, 1) / ride
-        stems = sorted(p.stem for p in (tiny_data / ride / "images").iterdir())
-        assert sorted(p.stem for p in (folder / "depth").glob("*.npy")) == stems
-        cam = CylindricalCamera.from_json(tiny_data / ride / "camera.json")
-        geo = load_geometry(folder, len(stems), cam, stems)
-        assert geo.fused is not None and (geo.fused[:, 0] > 0).mean() > 0.5
-    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    later = [r for r in rows if r["step"] > 2]
-    assert later and all(r["sfm_dense"] > 0 for r in later)
-    assert all("sfm_dense" not in r for r in rows if r["step"] <= 2)
+    assert later and all(r["sfm_depth"] > 0 and r["sfm_pose"] > 0 and r["sfm_dense"] > 0 for r in later)
     parts = sum(
         later[-1].get(k, 0.0)
         for k in ("photometric", "smooth", "explain", "scaffold", "sfm_depth", "sfm_pose", "sfm_dense")
     )
     assert later[-1]["total"] == pytest.approx(parts, rel=1e-6)
+    saved = json.loads((run / STATE_FILE).read_text())
+    assert len(saved["stages"]) == 3 and saved["seconds"] > 0
 
 
 def test_a_run_interrupted_between_rounds_resumes_to_the_same_weights(tiny_data, tmp_path, monkeypatch):

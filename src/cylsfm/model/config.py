@@ -126,7 +126,7 @@ class SfmConfig:
         depth_weight: ``loss.sfm_depth_weight`` once a ride has its geometry.
         pose_weight: ``loss.sfm_pose_weight``.
         dense_weight: ``loss.sfm_dense_weight``: each frame's depth taught its fusion with its
-            neighbours' by the adjusted poses (the odometry then writes every frame's depth).
+            neighbours' by the adjusted poses (the odometry then writes every frame's depth; 0: none).
         synthesis: ``loss.sfm_synthesis``: warp with the adjusted poses.
         refine: the odometry's direct alignment before the adjustment (slower, a better start).
     """
@@ -135,7 +135,7 @@ class SfmConfig:
     first_share: float = 0.5
     depth_weight: float = 0.1
     pose_weight: float = 0.1
-    dense_weight: float = 0.0
+    dense_weight: float = 0.1
     synthesis: bool = False
     refine: bool = True
 

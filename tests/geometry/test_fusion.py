@@ -52,6 +52,16 @@ def test_an_error_of_one_frame_is_outvoted_by_its_neighbours():
     assert float(((fused[2] - depths[2]).abs() / depths[2]).mean()) < 0.03
 
 
+def test_a_ride_fused_in_chunks_gives_the_same_result():
+    depths, c2w, cam = _ride(frames=9)
+    depths[4, :, :, :20] *= 1.2
+    whole = fuse_depth(depths, c2w, cam, neighbours=3)
+    for chunk in (1, 2, 4):
+        parts = fuse_depth(depths, c2w, cam, neighbours=3, chunk=chunk)
+        for a, b in zip(whole, parts, strict=True):
+            torch.testing.assert_close(a, b)
+
+
 def test_pixels_seen_by_too_few_frames_or_unknown_have_no_fused_depth():
     depths, c2w, cam = _ride(frames=2)
     depths[0, :, :, :8] = 0  # unknown

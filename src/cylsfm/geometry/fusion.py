@@ -32,7 +32,7 @@ __all__ = ["fuse_depth"]
 
 
 def fuse_depth(
-    depths: Tensor, c2w: Tensor, camera: Camera, neighbours: int = 3, min_views: int = 3
+    depths: Tensor, c2w: Tensor, camera: Camera, neighbours: int = 3, min_views: int = 3, chunk: int = 32
 ) -> tuple[Tensor, Tensor]:
     """Fuse each frame's depth with its ``neighbours`` frames on either side (see the module docstring).
 
@@ -43,6 +43,7 @@ def fuse_depth(
         camera: the camera of the maps (size ``W x H``).
         neighbours: frames on either side compared (``>= 1``).
         min_views: the fewest frames (the target included) that must see a pixel for it to be fused.
+        chunk: frames fused at once (memory: ``chunk * (2 neighbours + 1)`` maps; the result is the same).
 
     Returns:
         ``(fused [M,1,H,W], spread [M,1,H,W])``: the fused depth (0 where unknown) and the spread of the
@@ -63,34 +64,46 @@ def fuse_depth(
     check_shape(c2w, f"{m},4,4", "c2w")
     if (w, h) != camera.size:
         raise InputError(f"depths are {w}x{h} but the camera is {camera.width}x{camera.height}")
-    if neighbours < 1 or min_views < 1:
-        raise InputError(f"neighbours and min_views must be at least 1, got {neighbours}, {min_views}")
+    if neighbours < 1 or min_views < 1 or chunk < 1:
+        raise InputError(
+            f"neighbours, min_views and chunk must be at least 1, got {neighbours}, {min_views}, {chunk}"
+        )
     with torch.autocast(device_type=depths.device.type, enabled=False):
-        d = depths.float()
-        poses = c2w.double()
-        known = d > 0
-        logs = torch.full((m, 2 * neighbours + 1, h, w), float("nan"), device=d.device)
-        logs[:, neighbours] = torch.where(known, d.clamp(min=1e-6).log(), torch.nan)[:, 0]
-        points = camera.unproject(d.clamp(min=1e-6))
-        for k, offset in enumerate(range(-neighbours, neighbours + 1)):
-            if offset == 0:
-                continue
-            first, end = max(0, -offset), min(m, m - offset)
-            if first >= end:  # a ride shorter than the offset
-                continue
-            t = torch.arange(first, end, device=d.device)
-            s = t + offset
-            to_source = (invert(poses[s]) @ poses[t]).float()  # T_target_to_source
-            moved = transform_points(to_source, points[t])
-            seen = camera.depth_of(moved)
-            there, valid = sample_image(d[s], camera.project(moved), camera.wraps)
-            ok = valid & camera.projectable(moved) & known[t] & (seen > 1e-6) & (there > 0)
-            candidate = d[t] * there / seen.clamp(min=1e-6)
-            logs[t, k] = torch.where(ok, candidate.clamp(min=1e-6).log(), torch.nan)[:, 0]
-        views = torch.isfinite(logs).sum(1, keepdim=True)
-        median = torch.nanmedian(logs, 1, keepdim=True).values
-        spread = torch.nanmedian((logs - median).abs(), 1, keepdim=True).values
-        fused_ok = (views >= min_views) & known
-        fused = torch.where(fused_ok, median.exp(), torch.zeros_like(median))
-        spread = torch.where(fused_ok, spread, torch.zeros_like(spread))
+        d, poses = depths.float(), c2w.double()
+        parts = [
+            _fuse_chunk(d, poses, camera, neighbours, min_views, c0, min(c0 + chunk, m))
+            for c0 in range(0, m, chunk)
+        ]
+    fused, spread = (torch.cat(p, 0) for p in zip(*parts, strict=True))
     return fused, spread
+
+
+def _fuse_chunk(
+    d: Tensor, poses: Tensor, camera: Camera, neighbours: int, min_views: int, c0: int, c1: int
+) -> tuple[Tensor, Tensor]:
+    """:func:`fuse_depth` of the target frames ``c0 .. c1 - 1`` of the ride's depths ``d`` ``[M,1,H,W]``
+    (float32) posed by ``poses`` ``[M,4,4]`` (float64)."""
+    m, _, h, w = d.shape
+    known = d[c0:c1] > 0
+    logs = torch.full((c1 - c0, 2 * neighbours + 1, h, w), float("nan"), device=d.device)
+    logs[:, neighbours] = torch.where(known, d[c0:c1].clamp(min=1e-6).log(), torch.nan)[:, 0]
+    points = camera.unproject(d[c0:c1].clamp(min=1e-6))
+    for k, offset in enumerate(range(-neighbours, neighbours + 1)):
+        first, end = max(c0, -offset), min(c1, m - offset)
+        if offset == 0 or first >= end:  # the target itself, or no frame that far away
+            continue
+        t = torch.arange(first, end, device=d.device)
+        s, i = t + offset, t - c0
+        to_source = (invert(poses[s]) @ poses[t]).float()  # T_target_to_source
+        moved = transform_points(to_source, points[i])
+        seen = camera.depth_of(moved)
+        there, valid = sample_image(d[s], camera.project(moved), camera.wraps)
+        ok = valid & camera.projectable(moved) & known[i] & (seen > 1e-6) & (there > 0)
+        candidate = d[t] * there / seen.clamp(min=1e-6)
+        logs[i, k] = torch.where(ok, candidate.clamp(min=1e-6).log(), torch.nan)[:, 0]
+    views = torch.isfinite(logs).sum(1, keepdim=True)
+    median = torch.nanmedian(logs, 1, keepdim=True).values
+    spread = torch.nanmedian((logs - median).abs(), 1, keepdim=True).values
+    fused_ok = (views >= min_views) & known
+    fused = torch.where(fused_ok, median.exp(), torch.zeros_like(median))
+    return fused, torch.where(fused_ok, spread, torch.zeros_like(spread))

@@ -121,8 +121,8 @@ class RideGeometry:
         if self.fused is None:
             return np.zeros((2, h, w), np.float32)
         maps = self.fused[frame].astype(np.float32)
-        if maps.shape[1:] != (h, w):
-            maps = np.stack([resize_nearest(m, size) for m in maps])
+        if maps.shape[1:] != (h, w):  # both channels in one pass ([H,W,2])
+            maps = np.ascontiguousarray(resize_nearest(maps.transpose(1, 2, 0), size).transpose(2, 0, 1))
         return maps
 
     def targets(self, frame: int, size: tuple[int, int]) -> np.ndarray:

@@ -49,7 +49,7 @@ def fuse_depth(
         ``(fused [M,1,H,W], spread [M,1,H,W])``: the fused depth (0 where unknown) and the spread of the
         log depths it was fused from (0 where unknown), float32.
 
-    Two frames that agree keep their depth, with no spread:
+    Frames that agree keep their depth:
 
     >>> from cylsfm.geometry import CylindricalCamera
     >>> cam = CylindricalCamera.full(16, 4)
